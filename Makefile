@@ -1,0 +1,30 @@
+# Two entry points: `make demo` and `make test`. Both create .venv when missing
+# and (re)install only when pyproject.toml or constraints.txt changed.
+PY      ?= python3
+VENV    := .venv
+STAMP   := $(VENV)/.installed
+PIP     := $(VENV)/bin/python -m pip
+
+.PHONY: demo test lint bench clean
+
+$(VENV)/bin/python:
+	$(PY) -m venv $(VENV)
+
+$(STAMP): $(VENV)/bin/python pyproject.toml constraints.txt
+	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e ".[dev,bench]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/python -m agents.demo --out out/demo
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check . && $(VENV)/bin/ruff format --check .
+
+bench: $(STAMP)
+	$(VENV)/bin/python benchmarks/bench_env.py
+
+clean:
+	rm -rf $(VENV) out

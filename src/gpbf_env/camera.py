@@ -1,0 +1,325 @@
+"""Wall-mounted pinhole cameras with barrel distortion that report image ellipses.
+
+Two ways of seeing the envelope (an ellipsoid):
+
+* closed form (fast): the outline of a quadric under a pinhole camera is the conic whose
+  dual is ``C* = K M K^T`` with ``M = R A R^T - c c^T`` in camera coordinates (``A`` the
+  squared semi-axes, ``R`` the envelope attitude, ``c`` its centre). We sample the conic
+  at ``K`` equally spaced parameter angles, apply the radial distortion and pixel noise,
+  and fit an ellipse by second moments (for equally spaced points on an ellipse the
+  moment fit is exact: centre = mean, shape = 2 x covariance).
+* rendered (slow, like the paper's cameras): every pixel's distorted ray is tested against
+  the ellipsoid, the silhouette is painted into a noisy image over a static background,
+  and the ellipse is fitted to the background-subtracted foreground (shape = 4 x covariance
+  of a filled ellipse's pixels).
+
+An ellipse is ``(cx, cy, width, height, angle)`` in pixels: centre, full major and minor
+axis lengths, and the major axis angle from the image x axis (towards image y, which
+points down), wrapped to ``(-pi/2, pi/2]`` because an ellipse rotated by pi is itself.
+Camera frame: x right, y down, z along the optical axis.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "Camera",
+    "default_cameras",
+    "ellipse_from_points",
+    "euler_to_matrix",
+    "fit_ellipse_image",
+    "outline_ellipses",
+    "render_frame",
+]
+
+FloatArray = NDArray[np.float64]
+N_BOUNDARY = 16  # conic samples per outline in the closed-form mode
+
+
+def euler_to_matrix(euler: FloatArray) -> FloatArray:
+    """Body-to-world rotation ``Rz(psi) Ry(theta) Rx(phi)``.
+
+    Parameters
+    ----------
+    euler: (N, 3)
+        Roll, pitch, yaw (rad).
+
+    Returns
+    -------
+    R: (N, 3, 3)
+    """
+    sf, st, sp = np.sin(euler).T
+    cf, ct, cp = np.cos(euler).T
+    rows = (
+        cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf,
+        sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf,
+        -st, ct * sf, ct * cf,
+    )  # fmt: skip
+    return np.stack(rows, axis=-1).reshape(-1, 3, 3)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A calibrated pinhole camera with two-term radial distortion.
+
+    Attributes
+    ----------
+    position: (3,)
+        Optical centre in the world (m).
+    rotation: (3, 3)
+        World-to-camera rotation; its rows are the camera x, y, z axes in the world.
+    focal
+        Focal length (pixels), equal in x and y.
+    size
+        Image ``(width, height)`` in pixels.
+    k1, k2
+        Radial distortion ``x_d = x (1 + k1 r^2 + k2 r^4)`` in normalised coordinates;
+        ``k1 < 0`` is barrel distortion.
+    rate_hz, phase_s
+        Frame rate and the time of the first frame; frames are staggered between cameras.
+    """
+
+    position: FloatArray
+    rotation: FloatArray
+    focal: float = 380.0
+    size: tuple[int, int] = (640, 480)
+    k1: float = -0.10
+    k2: float = 0.01
+    rate_hz: float = 1.0
+    phase_s: float = 0.0
+    name: str = field(default="cam")
+
+    @classmethod
+    def look_at(cls, position: FloatArray, target: FloatArray, **kwargs: object) -> Camera:
+        """A camera at ``position`` whose optical axis points at ``target`` (world z is up)."""
+        pos = np.asarray(position, dtype=np.float64)
+        fwd = np.asarray(target, dtype=np.float64) - pos
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        return cls(position=pos, rotation=np.stack([right, down, fwd]), **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        """Image centre ``(cx, cy)`` in pixels."""
+        return (self.size[0] - 1) / 2.0, (self.size[1] - 1) / 2.0
+
+    def intrinsics(self) -> FloatArray:
+        """The 3x3 calibration matrix ``K``."""
+        cx, cy = self.principal_point
+        return np.array([[self.focal, 0.0, cx], [0.0, self.focal, cy], [0.0, 0.0, 1.0]])
+
+    def project(self, points: FloatArray, distort: bool = True) -> tuple[FloatArray, FloatArray]:
+        """Project world points to pixels.
+
+        Parameters
+        ----------
+        points: (..., 3)
+
+        Returns
+        -------
+        pixels: (..., 2)
+        depth: (...)
+            Distance along the optical axis; ``<= 0`` is behind the camera.
+        """
+        pc = (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation.T
+        depth = pc[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = pc[..., :2] / depth[..., None]
+        if distort:
+            xn = self.distort_normalized(xn)
+        cx, cy = self.principal_point
+        return xn * self.focal + np.array([cx, cy]), depth
+
+    def distort_normalized(self, xn: FloatArray) -> FloatArray:
+        """Apply the radial distortion to normalised coordinates ``(..., 2)``."""
+        r2 = np.sum(xn * xn, axis=-1, keepdims=True)
+        return xn * (1.0 + self.k1 * r2 + self.k2 * r2 * r2)
+
+    def distort_pixels(self, pix: FloatArray) -> FloatArray:
+        """Map ideal (undistorted) pixels ``(..., 2)`` to distorted pixels."""
+        pp = np.array(self.principal_point)
+        return self.distort_normalized((pix - pp) / self.focal) * self.focal + pp
+
+    @cached_property
+    def pixel_rays(self) -> FloatArray:
+        """Undistorted camera-frame ray directions of every pixel centre, ``(H*W, 3)``."""
+        w, h = self.size
+        uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        cx, cy = self.principal_point
+        xd = np.stack([(uu.ravel() - cx) / self.focal, (vv.ravel() - cy) / self.focal], axis=-1)
+        xu = xd.copy()
+        for _ in range(20):  # fixed-point inversion of the radial model
+            r2 = np.sum(xu * xu, axis=-1, keepdims=True)
+            xu = xd / (1.0 + self.k1 * r2 + self.k2 * r2 * r2)
+        return np.concatenate([xu, np.ones((xu.shape[0], 1))], axis=-1)
+
+
+def default_cameras(
+    room: tuple[float, float, float], rate_hz: float = 1.0, n_cameras: int = 2
+) -> tuple[Camera, ...]:
+    """Cameras high in opposite corners of the room looking at its centre, frames staggered."""
+    lx, ly, lz = room
+    target = np.array([lx / 2, ly / 2, lz * 0.4])
+    corners = [(0.05, 0.05), (lx - 0.05, ly - 0.05), (lx - 0.05, 0.05), (0.05, ly - 0.05)]
+    if not 1 <= n_cameras <= len(corners):
+        raise ValueError(f"n_cameras must be in 1..{len(corners)}, got {n_cameras}")
+    period = 1.0 / rate_hz
+    return tuple(
+        Camera.look_at(
+            np.array([cx, cy, lz - 0.1]),
+            target,
+            rate_hz=rate_hz,
+            phase_s=period * k / n_cameras,
+            name=f"cam{k}",
+        )
+        for k, (cx, cy) in enumerate(corners[:n_cameras])
+    )
+
+
+def _ellipse_params(centre: FloatArray, shape: FloatArray) -> FloatArray:
+    """``(cx, cy, width, height, angle)`` from centre ``(..., 2)`` and shape ``(..., 2, 2)``."""
+    a, b, c = shape[..., 0, 0], shape[..., 0, 1], shape[..., 1, 1]
+    half, diff = 0.5 * (a + c), 0.5 * (a - c)
+    rad = np.sqrt(diff * diff + b * b)
+    lam1 = half + rad
+    lam2 = np.maximum(half - rad, 0.0)
+    angle = 0.5 * np.arctan2(2.0 * b, a - c)
+    angle = np.where(angle <= -math.pi / 2, angle + math.pi, angle)
+    return np.stack(
+        [centre[..., 0], centre[..., 1], 2 * np.sqrt(lam1), 2 * np.sqrt(lam2), angle], axis=-1
+    )
+
+
+def ellipse_from_points(points: FloatArray, shape_factor: float = 2.0) -> FloatArray:
+    """Moment fit of an ellipse to points ``(..., K, 2)``.
+
+    ``shape_factor`` is 2 for points equally spaced on the boundary and 4 for the pixels
+    filling an ellipse. Returns ``(..., 5)`` ellipse parameters.
+    """
+    centre = points.mean(axis=-2)
+    d = points - centre[..., None, :]
+    cov = np.einsum("...ki,...kj->...ij", d, d) / points.shape[-2]
+    return _ellipse_params(centre, shape_factor * cov)
+
+
+def outline_ellipses(
+    cameras: tuple[Camera, ...],
+    position: FloatArray,
+    rotation: FloatArray,
+    semi_axes: tuple[float, float, float],
+    noise_px: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Closed-form camera ellipses of ellipsoids.
+
+    Parameters
+    ----------
+    cameras
+        ``C`` cameras.
+    position: (N, 3)
+        Ellipsoid centres in the world.
+    rotation: (N, 3, 3)
+        Body-to-world rotations.
+    semi_axes
+        Ellipsoid semi-axes along body x, y, z.
+    noise_px: (N, C, K, 2), optional
+        Pixel noise added to the ``K = N_BOUNDARY`` distorted outline samples.
+
+    Returns
+    -------
+    ellipses: (N, C, 5)
+    visible: (N, C) bool
+        The whole envelope is in front of the camera and the ellipse centre is in the image.
+    """
+    n = position.shape[0]
+    diag_a = np.square(np.asarray(semi_axes, dtype=np.float64))
+    t = np.linspace(0.0, 2 * math.pi, N_BOUNDARY, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], axis=-1)  # (K, 2)
+    out = np.zeros((n, len(cameras), 5))
+    visible = np.zeros((n, len(cameras)), dtype=bool)
+    for k, cam in enumerate(cameras):  # a handful of cameras; vectorised over blimps
+        rc = np.einsum("ij,njk->nik", cam.rotation, rotation)
+        cc = (position - cam.position) @ cam.rotation.T
+        m = np.einsum("nik,k,njk->nij", rc, diag_a, rc) - cc[:, :, None] * cc[:, None, :]
+        kmat = cam.intrinsics()
+        cstar = np.einsum("ij,njk,lk->nil", kmat, m, kmat)
+        denom = -cstar[:, 2, 2]
+        ok = (denom > 1e-9) & (cc[:, 2] > 0)
+        denom = np.where(ok, denom, 1.0)
+        centre = -cstar[:, :2, 2] / denom[:, None]
+        shape = cstar[:, :2, :2] / denom[:, None, None] + centre[:, :, None] * centre[:, None, :]
+        par = _ellipse_params(centre, shape)
+        a1, a2, ang = 0.5 * par[:, 2], 0.5 * par[:, 3], par[:, 4]
+        e1 = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+        e2 = np.stack([-np.sin(ang), np.cos(ang)], axis=-1)
+        pts = (
+            centre[:, None, :]
+            + (a1[:, None] * circle[None, :, 0])[..., None] * e1[:, None, :]
+            + (a2[:, None] * circle[None, :, 1])[..., None] * e2[:, None, :]
+        )
+        pts = cam.distort_pixels(pts)
+        if noise_px is not None:
+            pts = pts + noise_px[:, k]
+        fit = ellipse_from_points(pts, 2.0)
+        w, h = cam.size
+        inside = (fit[:, 0] >= 0) & (fit[:, 0] <= w - 1) & (fit[:, 1] >= 0) & (fit[:, 1] <= h - 1)
+        visible[:, k] = ok & inside & (fit[:, 2] < 2 * w)
+        out[:, k] = np.where(visible[:, k, None], fit, 0.0)
+    return out, visible
+
+
+def silhouette_mask(
+    cam: Camera, position: FloatArray, rotation: FloatArray, semi_axes: tuple[float, float, float]
+) -> NDArray[np.bool_]:
+    """Pixels whose (distorted) ray hits the ellipsoid, ``(H, W)`` bool."""
+    inv_axes = 1.0 / np.asarray(semi_axes, dtype=np.float64)
+    to_unit = inv_axes[:, None] * rotation.T  # world -> unit-sphere frame
+    origin = to_unit @ (cam.position - position)
+    dirs = cam.pixel_rays @ (to_unit @ cam.rotation.T).T
+    od = dirs @ origin
+    disc = od * od - np.sum(dirs * dirs, axis=1) * (origin @ origin - 1.0)
+    hit = (disc >= 0.0) & (od < 0.0)
+    w, h = cam.size
+    return hit.reshape(h, w)
+
+
+def background_image(cam: Camera) -> NDArray[np.float64]:
+    """A fixed, textured background (walls and floor) for ``cam``, grey levels ``(H, W)``."""
+    w, h = cam.size
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    return 70.0 + 40.0 * vv / h + 12.0 * np.sin(uu / 23.0) * np.cos(vv / 31.0)
+
+
+def render_frame(
+    cam: Camera,
+    position: FloatArray,
+    rotation: FloatArray,
+    semi_axes: tuple[float, float, float],
+    rng: np.random.Generator | None = None,
+    noise_std: float = 4.0,
+) -> NDArray[np.uint8]:
+    """Grey image ``(H, W)`` of the envelope (bright) over the background, with pixel noise."""
+    img = background_image(cam)
+    img[silhouette_mask(cam, position, rotation, semi_axes)] = 215.0
+    if rng is not None and noise_std > 0:
+        img = img + rng.normal(0.0, noise_std, size=img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def fit_ellipse_image(
+    cam: Camera, frame: NDArray[np.uint8], threshold: float = 40.0, min_pixels: int = 20
+) -> FloatArray | None:
+    """Background subtraction and a moment ellipse fit; ``None`` when nothing is seen."""
+    fg = np.abs(frame.astype(np.float64) - background_image(cam)) > threshold
+    vv, uu = np.nonzero(fg)
+    if uu.size < min_pixels:
+        return None
+    pts = np.stack([uu, vv], axis=-1).astype(np.float64)
+    return ellipse_from_points(pts, 4.0)

@@ -1,0 +1,99 @@
+"""Flight tasks: goal sampling and dense rewards, vectorised over blimps."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["TASKS", "RewardWeights", "sample_goals", "task_reward"]
+
+TASKS = ("hover", "waypoint")
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class RewardWeights:
+    """Weights of the dense reward ``-(d + w_h |heading err| + w_u |a|^2)``.
+
+    Attributes
+    ----------
+    heading
+        Per radian of heading error.
+    control
+        Per unit squared normalised action.
+    reach_bonus
+        Paid once when a waypoint is reached (waypoint task).
+    crash
+        Paid once on termination (leaving the room, floor or ceiling).
+    reach_radius
+        Distance (m) at which a waypoint counts as reached, and hover counts as on target.
+    """
+
+    heading: float = 0.3
+    control: float = 0.05
+    reach_bonus: float = 10.0
+    crash: float = 20.0
+    reach_radius: float = 0.5
+
+
+def sample_goals(
+    rng: np.random.Generator, room: tuple[float, float, float], task: str, n_waypoints: int = 4
+) -> FloatArray:
+    """Goals ``(W, 4)``: position (m) and yaw (rad); one row for hover, ``n_waypoints`` else."""
+    lx, ly, lz = room
+    n = 1 if task == "hover" else n_waypoints
+    lo = np.array([2.0, 1.5, 1.2])
+    hi = np.array([lx - 2.0, ly - 1.5, lz - 1.5])
+    pos = rng.uniform(lo, hi, size=(n, 3))
+    yaw = rng.uniform(-math.pi, math.pi, size=(n, 1))
+    return np.concatenate([pos, yaw], axis=1)
+
+
+def _wrap(a: FloatArray) -> FloatArray:
+    return a - 2.0 * math.pi * np.floor((a + math.pi) / (2.0 * math.pi))
+
+
+def task_reward(
+    task: str,
+    position: FloatArray,
+    yaw: FloatArray,
+    goal: FloatArray,
+    action: FloatArray,
+    weights: RewardWeights,
+) -> dict[str, FloatArray]:
+    """Reward components for ``N`` blimps.
+
+    Parameters
+    ----------
+    task
+        ``"hover"`` (hold the goal position and yaw) or ``"waypoint"`` (fly to the goal,
+        nose towards it).
+    position: (N, 3)
+    yaw: (N,)
+    goal: (N, 4)
+        Current goal (position, yaw) of each blimp.
+    action: (N, 3)
+        Normalised action.
+
+    Returns
+    -------
+    dict with ``distance``, ``heading``, ``control`` (the negative dense terms, (N,)),
+    ``distance_m`` and ``reached`` (bool, within ``reach_radius``).
+    """
+    delta = goal[:, :3] - position
+    dist = np.sqrt(np.sum(delta * delta, axis=1))
+    if task == "hover":
+        target_yaw = goal[:, 3]
+    else:
+        target_yaw = np.arctan2(delta[:, 1], delta[:, 0])
+    heading_err = np.abs(_wrap(yaw - target_yaw))
+    return {
+        "distance": -dist,
+        "heading": -weights.heading * heading_err,
+        "control": -weights.control * np.sum(action * action, axis=1),
+        "distance_m": dist,
+        "reached": dist < weights.reach_radius,
+    }
