@@ -14,7 +14,14 @@ from gpbf_env.core import STATE_NAMES, WorldConfig
 from gpbf_env.params import BlimpParams
 from gpbf_env.vector_env import BlimpVectorEnv
 
-__all__ = ["STATE_NAMES", "BlimpEnv", "BlimpParams", "BlimpVectorEnv", "WorldConfig", "register_envs"]
+__all__ = [
+    "STATE_NAMES",
+    "BlimpEnv",
+    "BlimpParams",
+    "BlimpVectorEnv",
+    "WorldConfig",
+    "register_envs",
+]
 
 MAX_EPISODE_STEPS = 240  # 60 s at 4 Hz
 

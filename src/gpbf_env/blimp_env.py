@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -71,7 +71,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     :class:`~gpbf_env.core.WorldConfig`), and ``render_mode`` (``"rgb_array"`` or None).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(self, render_mode: str | None = None, **config: Any) -> None:
         if render_mode not in (None, "rgb_array"):
@@ -82,7 +82,9 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self.observation_space = self.config.observation_space()
         self._params: BlimpParams = self.config.params
-        self._coeffs: Coeffs = make_coeffs([self._params], self.config.dt, self.config.substeps, math)
+        self._coeffs: Coeffs = make_coeffs(
+            [self._params], self.config.dt, self.config.substeps, math
+        )
         self._state = [0.0] * 12
         self._motors: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._wind = [0.0, 0.0, 0.0]

@@ -100,7 +100,9 @@ class WorldConfig:
         w, h = self.cameras[0].size
         c = self.n_cameras
         low = np.tile(np.array([0, 0, 0, 0, -math.pi / 2], dtype=np.float32), (c, 1))
-        high = np.tile(np.array([w - 1, h - 1, 2 * w, 2 * w, math.pi / 2], dtype=np.float32), (c, 1))
+        high = np.tile(
+            np.array([w - 1, h - 1, 2 * w, 2 * w, math.pi / 2], dtype=np.float32), (c, 1)
+        )
         return low, high
 
     def observation_space(self) -> spaces.Dict:

@@ -127,7 +127,9 @@ class BlimpParams:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-dict view (tuples become lists), e.g. for recording metadata."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        return {
+            k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()
+        }
 
 
 def randomize_params(

@@ -18,7 +18,9 @@ BLUE = np.array([40, 90, 230], dtype=np.uint8)
 GREEN = np.array([30, 170, 60], dtype=np.uint8)
 
 
-def draw_ellipse(img: NDArray[np.uint8], ellipse: NDArray[Any], color: NDArray[np.uint8], scale: float = 1.0) -> None:
+def draw_ellipse(
+    img: NDArray[np.uint8], ellipse: NDArray[Any], color: NDArray[np.uint8], scale: float = 1.0
+) -> None:
     """Draw the outline of ``(cx, cy, width, height, angle)`` into ``img`` (H, W, 3) in place."""
     cx, cy, w, h, ang = (float(v) for v in ellipse)
     t = np.linspace(0, 2 * math.pi, 400)
@@ -27,13 +29,17 @@ def draw_ellipse(img: NDArray[np.uint8], ellipse: NDArray[Any], color: NDArray[n
     _plot_points(img, x * scale, y * scale, color)
 
 
-def _plot_points(img: NDArray[np.uint8], x: NDArray[Any], y: NDArray[Any], color: NDArray[np.uint8]) -> None:
+def _plot_points(
+    img: NDArray[np.uint8], x: NDArray[Any], y: NDArray[Any], color: NDArray[np.uint8]
+) -> None:
     xi, yi = np.rint(x).astype(int), np.rint(y).astype(int)
     keep = (xi >= 0) & (xi < img.shape[1]) & (yi >= 0) & (yi < img.shape[0])
     img[yi[keep], xi[keep]] = color
 
 
-def _camera_views(cfg: WorldConfig, state: NDArray[np.float64], obs: dict[str, Any] | None) -> NDArray[np.uint8]:
+def _camera_views(
+    cfg: WorldConfig, state: NDArray[np.float64], obs: dict[str, Any] | None
+) -> NDArray[np.uint8]:
     rot = euler_to_matrix(state[None, 3:6])[0]
     views = []
     for k, cam in enumerate(cfg.cameras):
@@ -46,7 +52,13 @@ def _camera_views(cfg: WorldConfig, state: NDArray[np.float64], obs: dict[str, A
     return np.concatenate(views, axis=1)
 
 
-def _top_down(cfg: WorldConfig, state: NDArray[np.float64], trail: NDArray[np.float64], goal: NDArray[np.float64], width: int) -> NDArray[np.uint8]:
+def _top_down(
+    cfg: WorldConfig,
+    state: NDArray[np.float64],
+    trail: NDArray[np.float64],
+    goal: NDArray[np.float64],
+    width: int,
+) -> NDArray[np.uint8]:
     lx, ly, _ = cfg.room
     s = (width - 20) / lx
     h = int(ly * s) + 20

@@ -9,7 +9,7 @@ next-step autoreset).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
@@ -39,7 +39,10 @@ class BlimpVectorEnv(VectorEnv):
         :class:`~gpbf_env.core.WorldConfig` fields, shared by all blimps.
     """
 
-    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": [],
+    }
 
     def __init__(self, num_envs: int = 1, max_episode_steps: int | None = None, **config: Any):
         if num_envs < 1:
@@ -93,7 +96,9 @@ class BlimpVectorEnv(VectorEnv):
         )
         noise = np.zeros((n, cfg.noise_size - 3))
         self._state[:, moving] = np.array(state)[:, moving]
-        self._motors = tuple(np.where(self._autoreset, m0, m1) for m0, m1 in zip(self._motors, motors, strict=True))
+        self._motors = tuple(
+            np.where(self._autoreset, m0, m1) for m0, m1 in zip(self._motors, motors, strict=True)
+        )
         if moving.size:
             draws = np.stack([self._rngs[i].standard_normal(cfg.noise_size) for i in moving])
             self._advance_wind(moving, draws[:, :3])

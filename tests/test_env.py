@@ -1,0 +1,213 @@
+"""Blimp environment: Gymnasium contracts, determinism, vector envs, physics sanity."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+import subprocess
+import sys
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import gpbf_env
+from gpbf_env import BlimpParams
+
+ENV_ID = "gpbf_env/Blimp-v0"
+
+
+def rollout(env: gym.Env, seed: int, steps: int, action_seed: int = 1):
+    rng = np.random.default_rng(action_seed)
+    obs, info = env.reset(seed=seed)
+    out = [(obs["ellipses"].copy(), obs["valid"].copy(), 0.0, info["state"])]
+    for _ in range(steps):
+        obs, r, term, trunc, info = env.step(rng.uniform(-1, 1, 3).astype(np.float32))
+        out.append((obs["ellipses"].copy(), obs["valid"].copy(), r, info["state"]))
+        if term or trunc:
+            obs, info = env.reset()
+    return out
+
+
+@pytest.mark.parametrize("env_id", [ENV_ID, "gpbf_env/BlimpWaypoint-v0"])
+@pytest.mark.parametrize("render_mode", [None, "rgb_array"])
+def test_check_env_without_warnings(env_id: str, render_mode: str | None) -> None:
+    env = gym.make(env_id, render_mode=render_mode)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+    if render_mode:
+        env.reset(seed=0)
+        img = env.render()
+        assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+
+
+def test_make_with_module_prefix_in_fresh_process() -> None:
+    code = (
+        "import gymnasium as gym, sys; e = gym.make('gpbf_env:gpbf_env/Blimp-v0');"
+        "o, i = e.reset(seed=0); assert i['state'].shape == (12,);"
+        "assert 'gpbf_env' in sys.modules"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_same_seed_same_rollout_and_different_seed_differs() -> None:
+    a = rollout(gym.make(ENV_ID), 7, 300)
+    b = rollout(gym.make(ENV_ID), 7, 300)
+    c = rollout(gym.make(ENV_ID), 8, 300)
+    for x, y in zip(a, b, strict=True):
+        for u, v in zip(x, y, strict=True):
+            np.testing.assert_array_equal(u, v)
+    assert not np.allclose(a[-1][3], c[-1][3])
+
+
+def test_pickle_mid_episode_continues_identically() -> None:
+    env = gym.make(ENV_ID)
+    env.reset(seed=3)
+    for _ in range(20):
+        env.step(np.array([0.5, 0.2, -0.3], dtype=np.float32))
+    clone = pickle.loads(pickle.dumps(env))
+    for _ in range(30):
+        a = np.array([0.8, -0.1, 0.4], dtype=np.float32)
+        o1, r1, *_, i1 = env.step(a)
+        o2, r2, *_, i2 = clone.step(a)
+        assert r1 == r2
+        np.testing.assert_array_equal(i1["state"], i2["state"])
+        np.testing.assert_array_equal(o1["ellipses"], o2["ellipses"])
+
+
+def test_native_vector_env_matches_single_envs_including_autoreset() -> None:
+    n, steps, seed = 3, 400, 11
+    venv = gym.make_vec(ENV_ID, num_envs=n, max_episode_steps=50)
+    assert isinstance(venv.unwrapped, gpbf_env.BlimpVectorEnv)
+    singles = [gym.make(ENV_ID, max_episode_steps=50) for _ in range(n)]
+    vo, vi = venv.reset(seed=seed)
+    for i, env in enumerate(singles):
+        o, info = env.reset(seed=seed + i)
+        np.testing.assert_allclose(vi["state"][i], info["state"], atol=1e-12)
+    rng = np.random.default_rng(0)
+    done = np.zeros(n, dtype=bool)
+    n_resets = 0
+    for _ in range(steps):
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        vo, vr, vterm, vtrunc, vi = venv.step(actions)
+        for i, env in enumerate(singles):
+            if done[i]:  # next-step autoreset: the vector env reset this blimp
+                o, info = env.reset()
+                r, term, trunc, state = 0.0, False, False, info["state"]
+                n_resets += 1
+            else:
+                o, r, term, trunc, info = env.step(actions[i])
+                state = info["state"]
+            np.testing.assert_allclose(vi["state"][i], state, atol=1e-9)
+            np.testing.assert_allclose(vo["ellipses"][i], o["ellipses"], atol=1e-3)
+            np.testing.assert_array_equal(vo["valid"][i], o["valid"])
+            assert (vterm[i], vtrunc[i]) == (term, trunc)
+            assert vr[i] == pytest.approx(r, abs=1e-9)
+        done = vterm | vtrunc
+    assert n_resets >= n * 5
+
+
+def test_sync_make_vec_and_sb3_vec_envs() -> None:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    sync = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="sync")
+    sync.reset(seed=0)
+    obs, *_ = sync.step(np.zeros((2, 3), dtype=np.float32))
+    assert obs["ellipses"].shape == (2, 2, 5)
+    for cls in (DummyVecEnv, SubprocVecEnv):
+        venv = make_vec_env("gpbf_env:" + ENV_ID, n_envs=2, seed=0, vec_env_cls=cls)
+        obs = venv.reset()
+        for _ in range(5):
+            obs, rew, _dones, infos = venv.step(np.zeros((2, 3), dtype=np.float32))
+        assert obs["ellipses"].shape == (2, 2, 5) and rew.shape == (2,)
+        assert infos[0]["state"].shape == (12,)
+        venv.close()
+
+
+def test_halving_the_integration_step_moves_60s_by_under_1cm() -> None:
+    def final_position(substeps: int) -> np.ndarray:
+        env = gym.make(ENV_ID, substeps=substeps, max_episode_steps=None)
+        env.reset(seed=5, options={"state": [5, 3, 2, 0.2, -0.1, 0.5, 0, 0, 0, 0, 0, 0]})
+        rng = np.random.default_rng(2)
+        for k in range(240):
+            a = rng.uniform(-1, 1, 3) if k % 8 == 0 else a  # noqa: F821 - held for 2 s
+            *_, info = env.step(a.astype(np.float32))
+        return info["state"][:3]
+
+    default = gpbf_env.WorldConfig().substeps
+    shift = np.linalg.norm(final_position(default) - final_position(2 * default))
+    assert shift < 0.01
+
+
+def test_unpowered_blimp_self_rights_and_settles() -> None:
+    calm = dataclasses.replace(BlimpParams(), gust_std=0.0, buoyancy_ratio=1.0)
+    env = gym.make(ENV_ID, params=calm, max_episode_steps=None)
+    env.reset(seed=0, options={"state": [5, 3, 2, 0.5, -0.4, 0.0, 0.3, 0, 0, 0.5, -0.3, 0.2]})
+    states = []
+    for _ in range(240):
+        *_, info = env.step(np.array([0.0, 0.0, 0.0], dtype=np.float32))
+        states.append(info["state"])
+    s = np.array(states)
+    assert np.max(np.abs(s[-40:, 3:5])) < 0.02  # roll and pitch back to level
+    assert np.max(np.abs(s[-40:, 6:12])) < 0.02  # velocities die out
+    kinetic = np.sum(s[:, 6:9] ** 2, axis=1) + np.sum(s[:, 9:12] ** 2, axis=1)
+    assert kinetic[-1] < 1e-3 * kinetic[0]
+
+
+def test_camera_schedule_is_staggered_at_one_hertz() -> None:
+    env = gym.make(ENV_ID, max_episode_steps=None)
+    env.reset(seed=1, options={"state": [5, 3, 1.8, 0, 0, 0, 0, 0, 0, 0, 0, 0]})
+    valid = [env.step(np.zeros(3, dtype=np.float32))[0]["valid"] for _ in range(40)]
+    v = np.array(valid)
+    assert v.sum(axis=0).tolist() == [10, 10]  # 1 Hz each over 10 s
+    assert not np.any(v.all(axis=1))  # never both at once
+
+
+def test_leaving_the_room_terminates() -> None:
+    env = gym.make(ENV_ID)
+    env.reset(seed=0, options={"state": [5, 3, 3.55, 0, 0, 0, 0, 0, 0.5, 0, 0, 0]})
+    terminated = False
+    for _ in range(20):
+        _, reward, terminated, _, info = env.step(np.array([1, 1, 0], dtype=np.float32))
+        if terminated:
+            break
+    assert terminated and info["crashed"] and reward < -20
+
+
+@pytest.mark.parametrize(
+    "action",
+    [np.array([np.nan, 0, 0]), np.array([0, np.inf, 0]), np.zeros(2), np.zeros((1, 3))],
+)
+def test_bad_actions_raise_and_change_nothing(action: np.ndarray) -> None:
+    env = gym.make(ENV_ID)
+    env.reset(seed=0)
+    before = env.unwrapped.state
+    with pytest.raises(ValueError, match="action"):
+        env.unwrapped.step(action)
+    np.testing.assert_array_equal(env.unwrapped.state, before)
+
+
+def test_out_of_range_actions_are_clipped() -> None:
+    results = []
+    for a in ([5.0, -3.0, 2.0], [1.0, -1.0, 1.0]):
+        env = gym.make(ENV_ID)
+        env.reset(seed=4)
+        for _ in range(10):
+            *_, info = env.step(np.array(a, dtype=np.float32))
+        results.append(info["state"])
+    np.testing.assert_array_equal(results[0], results[1])
+
+
+def test_domain_randomisation_is_seeded() -> None:
+    env = gym.make(ENV_ID, randomize=0.2)
+    env.reset(seed=1)
+    p1 = env.unwrapped.params
+    env.reset(seed=1)
+    assert env.unwrapped.params == p1
+    env.reset(seed=2)
+    assert env.unwrapped.params != p1
+    assert env.unwrapped.params.semi_length == p1.semi_length  # geometry is kept
