@@ -110,9 +110,7 @@ class Scaler:
         return (v - self.mean) / self.std
 
 
-def check_training_data(
-    x: object, y: object, min_points: int = 2
-) -> tuple[FloatArray, FloatArray]:
+def check_training_data(x: object, y: object, min_points: int = 2) -> tuple[FloatArray, FloatArray]:
     """Validate training inputs ``x (n, d)`` and targets ``y (n, P)`` (or ``(n,)``).
 
     Raises

@@ -176,7 +176,9 @@ class ExactGP:
             l, _ = robust_cholesky(k)
             chol_t[p] = l.T
             alpha[p] = chol_solve(l, y[:, p])
-        return cls(x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile)
+        return cls(
+            x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile
+        )
 
     @property
     def input_dim(self) -> int:
@@ -198,8 +200,14 @@ class ExactGP:
         p_out, n = self.alpha.shape
         chunk = max(1, _CHUNK_BYTES // (8 * p_out * n))
         if xs.shape[0] > chunk:
-            parts = [self.latent(xs[i : i + chunk], return_var, return_jac) for i in range(0, xs.shape[0], chunk)]
-            return tuple(None if parts[0][j] is None else np.concatenate([q[j] for q in parts]) for j in range(3))  # type: ignore[return-value]
+            parts = [
+                self.latent(xs[i : i + chunk], return_var, return_jac)
+                for i in range(0, xs.shape[0], chunk)
+            ]
+            return tuple(
+                None if parts[0][j] is None else np.concatenate([q[j] for q in parts])
+                for j in range(3)
+            )  # type: ignore[return-value]
         ks, mean, jac = cross_kernel_mean_jac(xs, self.x_train, self.theta, self.alpha, return_jac)
         sf2 = np.exp(2.0 * self.theta[:, -2])
         var = None
@@ -271,8 +279,12 @@ def fit_exact(
     xs, ys = xsc.apply(xa), ysc.apply(ya)
     starts = initial_thetas(xs, max(1, restarts), rng)
     bounds = theta_bounds(xs.shape[1])
-    theta = np.stack([
-        optimize_theta(lambda t, p=p: exact_nll(t, xs, ys[:, p]), starts, bounds, max_iter, "exact", p, callback)
-        for p in range(ys.shape[1])
-    ])  # fmt: skip
+    thetas = []
+    for p in range(ys.shape[1]):  # training: one optimisation per output
+
+        def objective(t: FloatArray, p: int = p) -> tuple[float, FloatArray]:
+            return exact_nll(t, xs, ys[:, p])
+
+        thetas.append(optimize_theta(objective, starts, bounds, max_iter, "exact", p, callback))
+    theta = np.stack(thetas)
     return ExactGP.from_theta(xs, ys, theta, xsc, ysc)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["sq_dist", "se_kernel", "split_theta"]
+__all__ = ["se_kernel", "split_theta", "sq_dist"]
 
 FloatArray = NDArray[np.float64]
 
@@ -22,7 +22,7 @@ def split_theta(theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
 
 
 def sq_dist(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Squared Euclidean distances ``(..., M, n)`` between rows of ``a (..., M, d)``, ``b (..., n, d)``.
+    """Squared distances ``(..., M, n)`` between rows of ``a (..., M, d)`` and ``b (..., n, d)``.
 
     Uses ``|a|^2 + |b|^2 - 2 a b^T`` (one matrix multiply), clipped at zero.
     """

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.linalg import blas
 from numpy.typing import NDArray
+from scipy.linalg import blas
 
 __all__ = ["NotPositiveDefiniteError", "chol_solve", "robust_cholesky", "tri_solve"]
 

@@ -52,7 +52,9 @@ def _pieces(theta: FloatArray, z: FloatArray, x: FloatArray) -> dict[str, FloatA
             "kmn": kmn, "lm": lm, "v": v, "lam": lam, "vl": vl, "lb": lb}  # fmt: skip
 
 
-def sparse_nll(params: FloatArray, x: FloatArray, y: FloatArray, m: int) -> tuple[float, FloatArray]:
+def sparse_nll(
+    params: FloatArray, x: FloatArray, y: FloatArray, m: int
+) -> tuple[float, FloatArray]:
     """FITC negative log marginal likelihood and its gradient.
 
     Parameters
@@ -128,9 +130,15 @@ class SparseGP:
 
     @classmethod
     def from_params(
-        cls, x: FloatArray, y: FloatArray, theta: FloatArray, z: FloatArray, xsc: Scaler, ysc: Scaler
+        cls,
+        x: FloatArray,
+        y: FloatArray,
+        theta: FloatArray,
+        z: FloatArray,
+        xsc: Scaler,
+        ysc: Scaler,
     ) -> SparseGP:
-        """Posterior for standardised ``x (n, d)``, ``y (n, P)``, ``theta (P, d+2)``, ``z (P, m, d)``."""
+        """Posterior for standardised ``x (n, d)``, ``y (n, P)``, ``theta``, ``z (P, m, d)``."""
         p_out, m = z.shape[0], z.shape[1]
         beta, lmt, lbt = np.empty((p_out, m)), np.empty((p_out, m, m)), np.empty((p_out, m, m))
         for p in range(p_out):  # training-time only
@@ -138,7 +146,15 @@ class SparseGP:
             bc = chol_solve(q["lb"], q["vl"] @ y[:, p])
             beta[p] = sla.solve_triangular(q["lm"], bc, lower=True, trans="T", check_finite=False)
             lmt[p], lbt[p] = q["lm"].T, q["lb"].T
-        return cls(xsc, ysc, np.asarray(theta, dtype=np.float64), np.asarray(z, dtype=np.float64), beta, lmt, lbt)
+        return cls(
+            xsc,
+            ysc,
+            np.asarray(theta, dtype=np.float64),
+            np.asarray(z, dtype=np.float64),
+            beta,
+            lmt,
+            lbt,
+        )
 
     @property
     def input_dim(self) -> int:
@@ -152,7 +168,9 @@ class SparseGP:
         self, xs: FloatArray, return_var: bool, return_jac: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
-        ks, mean, jac = cross_kernel_mean_jac(xs, self.pseudo_inputs, self.theta, self.beta, return_jac)
+        ks, mean, jac = cross_kernel_mean_jac(
+            xs, self.pseudo_inputs, self.theta, self.beta, return_jac
+        )
         var = None
         if return_var:
             sf2 = np.exp(2.0 * self.theta[:, -2])

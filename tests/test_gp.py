@@ -1,0 +1,281 @@
+"""GP regression: gradients, limits, learning, sparse/hetero/enhanced, persistence, errors."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator_service.gp import (
+    ExactGP,
+    ModelFileError,
+    Scaler,
+    SparseGP,
+    exact_nll,
+    fit_enhanced,
+    fit_exact,
+    fit_hetero,
+    fit_sparse,
+    load_gp,
+    save_gp,
+    sparse_nll,
+)
+from estimator_service.gp.kernel import se_kernel
+
+
+def central_diff(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    g = np.zeros_like(x)
+    for i in range(x.size):
+        e = np.zeros_like(x)
+        e[i] = h
+        g[i] = (f(x + e) - f(x - e)) / (2 * h)
+    return g
+
+
+def identity_scalers(d: int, p: int) -> tuple[Scaler, Scaler]:
+    return Scaler(np.zeros(d), np.ones(d)), Scaler(np.zeros(p), np.ones(p))
+
+
+@pytest.fixture(scope="module")
+def toy() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-3, 3, (80, 2))
+    y = np.stack([np.sin(x[:, 0]) + 0.3 * x[:, 1], np.cos(x[:, 1]) * x[:, 0]], axis=1)
+    return x, y + 0.05 * rng.normal(size=y.shape)
+
+
+@pytest.fixture(scope="module")
+def models(toy) -> dict[str, object]:
+    x, y = toy
+    rng = np.random.default_rng(1)
+    return {
+        "exact": fit_exact(x, y, restarts=2, max_iter=80, rng=rng),
+        "sparse": fit_sparse(x, y, n_pseudo=15, max_iter=80, rng=rng),
+        "hetero": fit_hetero(x, y, iterations=1, restarts=1, max_iter=50, rng=rng),
+        "enhanced": fit_enhanced(
+            x, y, lambda q: 0.3 * q[:, ::-1], fit_exact, restarts=1, max_iter=50
+        ),
+    }
+
+
+# -- objectives: analytic gradients vs finite differences -------------------------------
+@pytest.mark.parametrize("hetero", [False, True])
+def test_exact_and_heteroscedastic_nll_gradients(toy, hetero: bool) -> None:
+    x, y = toy
+    rng = np.random.default_rng(2)
+    profile = rng.uniform(0.3, 3.0, len(x)) if hetero else None
+    theta = np.array([0.2, -0.4, 0.3, math.log(0.2)])
+    _, grad = exact_nll(theta, x, y[:, 0], profile)
+    fd = central_diff(lambda t: exact_nll(t, x, y[:, 0], profile)[0], theta)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
+def test_sparse_nll_gradient_including_pseudo_inputs(toy) -> None:
+    x, y = toy
+    rng = np.random.default_rng(3)
+    m = 6
+    params = np.concatenate([[0.1, 0.4, 0.2, math.log(0.3)], rng.uniform(-2, 2, m * 2)])
+    _, grad = sparse_nll(params, x, y[:, 1], m)
+    fd = central_diff(lambda p: sparse_nll(p, x, y[:, 1], m)[0], params)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["exact", "sparse", "hetero", "enhanced"])
+def test_mean_jacobian_matches_finite_differences(models, kind: str) -> None:
+    gp = models[kind]
+    x0 = np.array([[0.3, -1.1], [2.0, 0.5], [-2.5, 2.5]])
+    jac = gp.predict(x0, return_jac=True).jac
+    assert jac.shape == (3, 2, 2)
+    h = 1e-5
+    fd = np.stack(
+        [(gp.predict(x0 + h * e).mean - gp.predict(x0 - h * e).mean) / (2 * h) for e in np.eye(2)],
+        axis=-1,
+    )
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
+
+
+# -- GP limits ----------------------------------------------------------------------------
+def test_far_from_data_prediction_reverts_to_prior(models, toy) -> None:
+    gp = models["exact"]
+    _, y = toy
+    pred = gp.predict(np.array([[400.0, -300.0]]))
+    sf2 = np.exp(2 * gp.theta[:, -2]) * gp.y_scaler.std**2
+    np.testing.assert_allclose(pred.mean[0], y.mean(axis=0), rtol=1e-9)
+    np.testing.assert_allclose(pred.var[0], sf2 + gp.noise_var, rtol=1e-9)
+
+
+def test_interpolates_with_tiny_noise() -> None:
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-2, 2, (30, 1))
+    y = np.sin(2 * x)
+    xs, ys = identity_scalers(1, 1)
+    gp = ExactGP.from_theta(x, y, np.array([[math.log(0.7), 0.0, math.log(1e-5)]]), xs, ys)
+    pred = gp.predict(x, include_noise=False)
+    np.testing.assert_allclose(pred.mean, y, atol=1e-6)
+    assert np.all(pred.var < 1e-6)
+
+
+def test_variance_grows_in_a_gap_of_the_data() -> None:
+    """Paper Fig. 1: uncertainty is larger where training data is missing."""
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.uniform(-4, -1, 40), rng.uniform(1, 4, 40)])[:, None]
+    gp = fit_exact(x, np.sin(x[:, 0]) + 0.05 * rng.normal(size=80), restarts=2, rng=rng)
+    query = np.array([[-2.5], [-1.5], [-0.5], [0.0], [2.5]])
+    var = gp.predict(query, include_noise=False).var[:, 0]
+    assert var[3] > var[2] > var[1]
+    assert var[3] > 5 * var[0] and var[3] > 5 * var[4]
+
+
+def test_learning_recovers_length_scales_and_noise() -> None:
+    rng = np.random.default_rng(6)
+    n, ell, sn = 400, np.array([0.6, 2.5]), 0.1
+    x = rng.uniform(-3, 3, (n, 2))
+    k = se_kernel(x, x, ell, 1.0) + 1e-8 * np.eye(n)
+    y = np.linalg.cholesky(k) @ rng.normal(size=n) + sn * rng.normal(size=n)
+    gp = fit_exact(x, y, restarts=3, rng=rng)
+    learned_ell = np.exp(gp.theta[0, :2]) * gp.x_scaler.std
+    learned_sn = math.sqrt(gp.noise_var[0])
+    np.testing.assert_allclose(learned_ell, ell, rtol=0.3)
+    assert learned_sn == pytest.approx(sn, rel=0.2)
+
+
+# -- sparse, heteroscedastic, enhanced ---------------------------------------------------
+def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy) -> None:
+    x, y = toy
+    x, y = x[:40], y[:40]
+    theta = np.array([[0.1, 0.3, 0.0, math.log(0.2)], [-0.2, 0.5, 0.3, math.log(0.1)]])
+    xs, ys = identity_scalers(2, 2)
+    sparse = SparseGP.from_params(x, y, theta, np.stack([x, x]), xs, ys)
+    exact = ExactGP.from_theta(x, y, theta, xs, ys)
+    q = np.random.default_rng(7).uniform(-3, 3, (25, 2))
+    a, b = sparse.predict(q, return_jac=True), exact.predict(q, return_jac=True)
+    for u, v in ((a.mean, b.mean), (a.var, b.var), (a.jac, b.jac)):
+        np.testing.assert_allclose(u, v, rtol=1e-6, atol=1e-8)
+    nll_sparse = sparse_nll(np.concatenate([theta[0], x.ravel()]), x, y[:, 0], 40)[0]
+    assert nll_sparse == pytest.approx(exact_nll(theta[0], x, y[:, 0])[0], rel=1e-8)
+
+
+def test_sparse_fit_is_close_to_exact_on_smooth_data(models, toy) -> None:
+    q = np.random.default_rng(8).uniform(-2.5, 2.5, (200, 2))
+    truth = np.stack([np.sin(q[:, 0]) + 0.3 * q[:, 1], np.cos(q[:, 1]) * q[:, 0]], axis=1)
+    rmse = {
+        k: np.sqrt(np.mean((models[k].predict(q).mean - truth) ** 2)) for k in ("exact", "sparse")
+    }
+    assert rmse["sparse"] < 2.0 * rmse["exact"] + 0.02
+
+
+def test_heteroscedastic_gp_beats_plain_gp_on_input_dependent_noise() -> None:
+    rng = np.random.default_rng(9)
+
+    def data(n: int) -> tuple[np.ndarray, np.ndarray]:
+        x = rng.uniform(-3, 3, (n, 1))
+        std = 0.05 + 0.5 * np.clip(x[:, 0], 0, None) / 3
+        return x, np.sin(x[:, 0]) + std * rng.normal(size=n)
+
+    x, y = data(150)
+    xt, yt = data(2000)
+    het = fit_hetero(x, y, iterations=2, restarts=1, max_iter=80, rng=rng)
+    plain = fit_exact(x, y, restarts=2, rng=rng)
+
+    def test_ll(gp) -> float:
+        p = gp.predict(xt)
+        v, m = p.var[:, 0], p.mean[:, 0]
+        return float(np.mean(-0.5 * np.log(2 * np.pi * v) - 0.5 * (yt - m) ** 2 / v))
+
+    assert test_ll(het) > test_ll(plain) + 0.2
+    noise = np.sqrt(het.noise_var(np.array([[-2.0], [2.5]])))[:, 0]
+    assert noise[1] > 3 * noise[0]  # learned that the right half is noisier
+
+
+def test_enhanced_gp_falls_back_to_parametric_model_far_from_data() -> None:
+    rng = np.random.default_rng(10)
+    x = rng.uniform(-2, 2, (60, 1))
+    f = lambda q: 2.0 * q  # noqa: E731 - parametric model: slope known
+    y = 2.0 * x + 0.3 * np.sin(3 * x)
+    egp = fit_enhanced(x, y, f, fit_exact, mean_jacobian=lambda q: np.full((len(q), 1, 1), 2.0))
+    plain = fit_exact(x, y)
+    far = np.array([[25.0]])
+    assert abs(egp.predict(far).mean[0, 0] - 50.0) < 0.5
+    assert abs(plain.predict(far).mean[0, 0] - 50.0) > 5.0
+    assert egp.predict(far, return_jac=True).jac[0, 0, 0] == pytest.approx(2.0, abs=1e-3)
+
+
+def test_posterior_is_immutable(models) -> None:
+    gp = models["exact"]
+    with pytest.raises(ValueError):
+        gp.alpha[0, 0] = 1.0
+    with pytest.raises(AttributeError):
+        gp.theta = gp.theta  # frozen dataclass
+
+
+def test_training_reports_progress_through_callback(toy) -> None:
+    x, y = toy
+    seen = []
+    fit_exact(x[:30], y[:30, 0], restarts=1, max_iter=5, callback=seen.append)
+    assert seen and seen[0].iteration == 1 and np.isfinite(seen[-1].objective)
+    assert seen[-1].model == "exact"
+
+
+# -- persistence ----------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["exact", "sparse", "hetero", "enhanced"])
+def test_save_load_round_trips_exactly(models, kind: str, tmp_path: Path) -> None:
+    gp = models[kind]
+    path = save_gp(gp, tmp_path / f"{kind}.npz")
+    extra = {"mean_function": gp.mean_function} if kind == "enhanced" else {}
+    back = load_gp(path, **extra)
+    assert back.kind == kind
+    q = np.random.default_rng(11).uniform(-3, 3, (17, 2))
+    a, b = gp.predict(q, return_jac=True), back.predict(q, return_jac=True)
+    for u, v in ((a.mean, b.mean), (a.var, b.var), (a.jac, b.jac)):
+        np.testing.assert_array_equal(u, v)
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_malformed_model_files_are_rejected(models, tmp_path: Path) -> None:
+    good = save_gp(models["exact"], tmp_path / "good.npz")
+    raw = good.read_bytes()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ModelFileError, match="truncated"):
+        load_gp(truncated)
+    arrays = dict(np.load(good, allow_pickle=False))
+    cases = {
+        "version": {**arrays, "__format__": np.array(99)},
+        "alpha": {**arrays, "alpha": arrays["alpha"][:, :-1]},
+        "chol_t": {k: v for k, v in arrays.items() if k != "chol_t"},
+        "kind": {**arrays, "__kind__": np.array("mystery")},
+    }
+    for needle, content in cases.items():
+        path = tmp_path / f"bad_{needle}.npz"
+        np.savez(path, **content)
+        with pytest.raises(ModelFileError, match=needle):
+            load_gp(path)
+    egp = save_gp(models["enhanced"], tmp_path / "egp.npz")
+    with pytest.raises(ModelFileError, match="mean_function"):
+        load_gp(egp)
+
+
+# -- bad input --------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("x", "y", "match"),
+    [
+        (np.array([[0.0], [np.nan], [1.0]]), np.zeros(3), "NaN"),
+        (np.zeros((3, 1)), np.array([0.0, np.inf, 1.0]), "NaN or Inf"),
+        (np.zeros((4, 1)), np.zeros(3), "rows"),
+        (np.zeros((2, 1)), np.zeros(2), "at least"),
+        (np.zeros(5), np.zeros(5), "2-D"),
+    ],
+)
+def test_bad_training_data_raises(x, y, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        fit_exact(x, y)
+
+
+def test_bad_queries_raise(models) -> None:
+    gp = models["sparse"]
+    with pytest.raises(ValueError, match=r"shape \(M, 2\)"):
+        gp.predict(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        gp.predict(np.array([[0.0, np.nan]]))
