@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,7 +18,7 @@ from estimator_service.gp.base import (
     check_training_data,
     report,
 )
-from estimator_service.gp.kernel import cross_kernel_mean_jac, se_kernel, split_theta, sq_dist
+from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta, sq_dist
 from estimator_service.gp.linalg import chol_solve, robust_cholesky, tri_solve
 
 __all__ = ["ExactGP", "exact_nll", "fit_exact", "initial_thetas", "optimize_theta"]
@@ -155,9 +155,12 @@ class ExactGP:
     noise_profile: FloatArray | None = None
     kind: str = "exact"
 
+    _kernel: CrossKernel = field(init=False, repr=False)
+
     def __post_init__(self) -> None:
         for arr in (self.theta, self.x_train, self.chol_t, self.alpha):
             arr.flags.writeable = False
+        object.__setattr__(self, "_kernel", CrossKernel.build(self.x_train, self.theta, self.alpha))
 
     @classmethod
     def from_theta(
@@ -208,7 +211,7 @@ class ExactGP:
                 None if parts[0][j] is None else np.concatenate([q[j] for q in parts])
                 for j in range(3)
             )  # type: ignore[return-value]
-        ks, mean, jac = cross_kernel_mean_jac(xs, self.x_train, self.theta, self.alpha, return_jac)
+        ks, mean, jac = self._kernel(xs, return_jac)
         sf2 = np.exp(2.0 * self.theta[:, -2])
         var = None
         if return_var:

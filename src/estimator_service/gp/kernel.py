@@ -7,6 +7,8 @@ variance ``sn^2``. (The paper writes ``W = diag(1/ell^2)``.)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -52,36 +54,66 @@ def se_kernel(a: FloatArray, b: FloatArray, ell: FloatArray, sf2: FloatArray | f
     return k
 
 
-def cross_kernel_mean_jac(
-    xs: FloatArray, centres: FloatArray, theta: FloatArray, weights: FloatArray, return_jac: bool
-) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-    """Kernel block, weighted-sum mean and its Jacobian for ``P`` outputs at once.
+@dataclass(frozen=True, eq=False)
+class CrossKernel:
+    """Precomputed pieces for ``k(x*, centres)``, the GP mean and its Jacobian (P outputs).
 
-    Parameters
+    The squared-exponential exponent ``log sf^2 - |a - b|^2 / 2`` (``a = x*/ell``,
+    ``b = centre/ell``) is one matrix product of augmented rows ``[a, -|a|^2/2, 1]`` and
+    ``[b, 1, log sf^2 - |b|^2/2]``, followed by one in-place ``exp``.
+
+    Attributes
     ----------
-    xs: (M, d)
-        Standardised queries.
-    centres: (n, d) or (P, n, d)
-        Training inputs (shared) or pseudo-inputs (per output).
-    theta: (P, d + 2)
-    weights: (P, n)
+    ell: (P, d)
+    log_sf2: (P,)
+    b_aug_t: (P, d + 2, n)
+    weights: (P, n, 1)
         ``alpha`` (exact GP) or ``beta`` (sparse GP).
-
-    Returns
-    -------
-    ks: (P, M, n)
-        ``k(x*, centres)`` per output.
-    mean: (M, P)
-        ``ks @ weights`` (paper eq. 2).
-    jac: (M, P, d) or None
-        ``d mean / d x*`` (paper eq. 20-22): ``-W (x* mean - (ks * weights) @ centres)``.
+    weighted_centres: (P, n, d)
+        ``weights * centres``, for the Jacobian.
     """
-    ell, sf2, _ = split_theta(theta)
-    ks = se_kernel(xs[None], centres if centres.ndim == 3 else centres[None], ell, sf2)
-    mean = np.einsum("pmn,pn->mp", ks, weights)
-    jac = None
-    if return_jac:
-        kw = ks * weights[:, None, :]
-        jac = (kw @ centres - xs[None] * mean.T[:, :, None]) / (ell * ell)[:, None, :]
-        jac = jac.transpose(1, 0, 2)
-    return ks, mean, jac
+
+    ell: FloatArray
+    log_sf2: FloatArray
+    b_aug_t: FloatArray
+    weights: FloatArray
+    weighted_centres: FloatArray
+
+    @classmethod
+    def build(cls, centres: FloatArray, theta: FloatArray, weights: FloatArray) -> CrossKernel:
+        """From centres ``(n, d)`` or ``(P, n, d)``, ``theta (P, d+2)``, ``weights (P, n)``."""
+        ell, sf2, _ = split_theta(theta)
+        c = np.broadcast_to(centres, (theta.shape[0], *centres.shape[-2:]))
+        b = c / ell[:, None, :]
+        ones = np.ones((*b.shape[:2], 1))
+        top = (np.log(sf2)[:, None] - 0.5 * np.sum(b * b, axis=-1))[..., None]
+        b_aug_t = np.ascontiguousarray(np.concatenate([b, ones, top], axis=-1).transpose(0, 2, 1))
+        return cls(ell, np.log(sf2), b_aug_t, weights[:, :, None].copy(), weights[:, :, None] * c)
+
+    def __call__(
+        self, xs: FloatArray, return_jac: bool
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Kernel block, mean and Jacobian at standardised queries ``xs (M, d)``.
+
+        Returns
+        -------
+        ks: (P, M, n)
+        mean: (M, P)
+            ``ks @ weights`` (paper eq. 2).
+        jac: (M, P, d) or None
+            ``d mean / d x*`` (eq. 20-22): ``-W (x* mean - ks @ (weights * centres))``.
+        """
+        a = xs[None] / self.ell[:, None, :]
+        ones = np.ones((*a.shape[:2], 1))
+        a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=-1)[..., None], ones], axis=-1)
+        ks = a_aug @ self.b_aug_t
+        np.minimum(ks, self.log_sf2[:, None, None], out=ks)  # distance >= 0
+        np.exp(ks, out=ks)
+        mean = (ks @ self.weights)[:, :, 0]  # (P, M)
+        jac = None
+        if return_jac:
+            jac = (ks @ self.weighted_centres - xs[None] * mean[:, :, None]) / (self.ell**2)[
+                :, None, :
+            ]
+            jac = jac.transpose(1, 0, 2)
+        return ks, mean.T, jac

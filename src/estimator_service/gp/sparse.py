@@ -10,7 +10,7 @@ variance per query and output.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
@@ -24,7 +24,7 @@ from estimator_service.gp.base import (
     check_training_data,
 )
 from estimator_service.gp.exact import initial_thetas, optimize_theta, theta_bounds, unscale
-from estimator_service.gp.kernel import cross_kernel_mean_jac, split_theta, sq_dist
+from estimator_service.gp.kernel import CrossKernel, split_theta, sq_dist
 from estimator_service.gp.linalg import chol_solve, robust_cholesky, tri_solve
 
 __all__ = ["SparseGP", "fit_sparse", "sparse_nll"]
@@ -124,9 +124,14 @@ class SparseGP:
     chol_b_t: FloatArray
     kind: str = "sparse"
 
+    _kernel: CrossKernel = field(init=False, repr=False)
+
     def __post_init__(self) -> None:
         for arr in (self.theta, self.pseudo_inputs, self.beta, self.chol_mm_t, self.chol_b_t):
             arr.flags.writeable = False
+        object.__setattr__(
+            self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta)
+        )
 
     @classmethod
     def from_params(
@@ -168,9 +173,7 @@ class SparseGP:
         self, xs: FloatArray, return_var: bool, return_jac: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
-        ks, mean, jac = cross_kernel_mean_jac(
-            xs, self.pseudo_inputs, self.theta, self.beta, return_jac
-        )
+        ks, mean, jac = self._kernel(xs, return_jac)
         var = None
         if return_var:
             sf2 = np.exp(2.0 * self.theta[:, -2])

@@ -1,0 +1,33 @@
+"""Smoke tests: every benchmark runs in --quick mode and ends with its JSON figures."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+EXPECTED = {
+    "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
+    "bench_gp.py": {
+        "batch_mean_var_s", "achieved_gflops", "matmul_gflops", "speedup_vs_sklearn",
+        "one_query_ms", "25_queries_ms",
+    },
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("script", sorted(EXPECTED))
+def test_benchmark_quick_mode_prints_json_last(script: str) -> None:
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick"],
+        check=True, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    last = json.loads(out.stdout.strip().splitlines()[-1])
+    assert EXPECTED[script] <= set(last)
+    assert all(
+        isinstance(v, (int, float)) and v > 0 for k, v in last.items() if k in EXPECTED[script]
+    )
