@@ -1,0 +1,129 @@
+"""GP-PF (paper Table 1): particles sampled from their own predictive Gaussians."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator_service.filters.common import (
+    GaussianBelief,
+    ParticleBelief,
+    StepInfo,
+    Wrapping,
+    finite,
+    implausible,
+    make_pd,
+    nis_from_cholesky,
+    normalise_log_weights,
+)
+from estimator_service.models.base import ObservationModel, PredictionModel
+
+__all__ = ["PF", "systematic_resample"]
+
+FloatArray = NDArray[np.float64]
+
+
+def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> NDArray[np.intp]:
+    """Low-variance resampling: ``M`` indices from one uniform draw (Thrun et al. 2005)."""
+    m = weights.size
+    positions = (rng.random() + np.arange(m)) / m
+    cum = np.cumsum(weights)
+    cum[-1] = 1.0
+    return np.searchsorted(cum, positions, side="right")
+
+
+@dataclass(frozen=True)
+class PF:
+    """GP-PF with log-weights and effective-sample-size-triggered systematic resampling.
+
+    Attributes
+    ----------
+    n_particles
+        ``M`` (paper: up to thousands; default 2,000).
+    resample_below
+        Resample when ``ESS < resample_below * M`` (1.0 resamples every step, as Table 1).
+    """
+
+    prediction: PredictionModel
+    observation: ObservationModel
+    wrapping: Wrapping | None = None
+    n_particles: int = 2000
+    resample_below: float = 0.5
+    name: str = "PF"
+
+    @property
+    def _wrap(self) -> Wrapping:
+        return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
+
+    def initial(self, belief: GaussianBelief, rng: np.random.Generator) -> ParticleBelief:
+        """Particles drawn from a Gaussian belief."""
+        return ParticleBelief.from_gaussian(belief, self.n_particles, rng)
+
+    def gaussian(self, belief: ParticleBelief) -> GaussianBelief:
+        """Weighted mean (circular for angles) and covariance of the particles."""
+        w = belief.weights
+        mean = self._wrap.circular_mean(belief.particles, w)
+        dev = self._wrap.state_diff(belief.particles - mean)
+        return GaussianBelief(mean, make_pd((dev * w[:, None]).T @ dev)[0])
+
+    def predict(
+        self, belief: ParticleBelief, u: FloatArray, rng: np.random.Generator
+    ) -> ParticleBelief:
+        """Step 4: ``x_m ~ x_m + N(GP_mu([x_m, u]), GP_Sigma([x_m, u]))``, all particles at once."""
+        out = self.prediction.predict(belief.particles, u)
+        noise = rng.standard_normal(belief.particles.shape) * np.sqrt(out.var)
+        return ParticleBelief(
+            self._wrap.state_value(belief.particles + out.mean + noise), belief.log_weights
+        )
+
+    def update(
+        self, prior: ParticleBelief, z: FloatArray, valid: NDArray[np.bool_] | None,
+        rng: np.random.Generator,
+    ) -> tuple[ParticleBelief, StepInfo]:  # fmt: skip
+        """Steps 5-11: weight by the observation likelihood, resample when ESS is low."""
+        idx = np.arange(self.observation.obs_dim) if valid is None else np.flatnonzero(valid)
+        if idx.size == 0:
+            return prior, StepInfo(ess=prior.ess)
+        out = self.observation.observe(prior.particles)
+        zs, var = out.mean[:, idx], out.var[:, idx]
+        r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zs, idx)
+        loglik = -0.5 * np.sum(r * r / var + np.log(2 * math.pi * var), axis=1)
+        nis = self._nis(prior.weights, zs, var, np.asarray(z, dtype=np.float64)[idx], idx)
+        logw = prior.log_weights + loglik
+        if not np.any(np.isfinite(logw)) or not finite(prior.particles):
+            return prior, StepInfo(nis, idx.size, True, prior.ess)
+        logw = np.where(np.isfinite(logw), logw, -np.inf)
+        post = ParticleBelief(prior.particles, normalise_log_weights(logw))
+        ess = post.ess
+        resampled = ess < self.resample_below * self.n_particles
+        if resampled:
+            keep = systematic_resample(post.weights, rng)
+            post = ParticleBelief(post.particles[keep], np.full(keep.size, -math.log(keep.size)))
+        return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, resampled)
+
+    def _nis(self, w: FloatArray, zs: FloatArray, var: FloatArray, z: FloatArray, idx) -> float:
+        """NIS of ``z`` under the particles' predicted observation distribution."""
+        zhat = (
+            self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
+        )
+        dz = self._wrap.obs_diff(zs - zhat, idx)
+        s = (dz * w[:, None]).T @ dz + np.diag(w @ var)
+        try:
+            return nis_from_cholesky(np.linalg.cholesky(s), self._wrap.obs_diff(z - zhat, idx))
+        except np.linalg.LinAlgError:
+            return math.nan
+
+    def step(
+        self, belief: ParticleBelief, u: FloatArray, z: FloatArray | None,
+        valid: NDArray[np.bool_] | None, rng: np.random.Generator,
+    ) -> tuple[ParticleBelief, StepInfo]:  # fmt: skip
+        """One GP-PF step (Table 1) with control ``u (k,)`` and the valid entries of ``z (m,)``."""
+        prior = self.predict(belief, u, rng)
+        if not finite(prior.particles):
+            return belief, StepInfo(diverged=True, ess=belief.ess)
+        if z is None:
+            return prior, StepInfo(ess=prior.ess)
+        return self.update(prior, z, valid, rng)

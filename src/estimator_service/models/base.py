@@ -1,0 +1,124 @@
+"""The model interface every filter depends on, and linear-Gaussian models for tests.
+
+A prediction model maps ``(x, u)`` to the mean state *change*, its noise variance and
+the Jacobian of the change with respect to ``x`` (paper eq. 14); an observation model
+maps ``x`` to the mean observation, its noise variance and Jacobian (eq. 15). Both are
+batched over rows; noise is diagonal (one independent GP per output, paper Sect. 4.1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "LinearGaussianObservation",
+    "LinearGaussianPrediction",
+    "ModelOutput",
+    "ObservationModel",
+    "PredictionModel",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ModelOutput:
+    """Batched model evaluation for ``M`` rows.
+
+    Attributes
+    ----------
+    mean: (M, k)
+    var: (M, k)
+        Diagonal noise variance (including model uncertainty for GP models).
+    jac: (M, k, n) or None
+        Jacobian of ``mean`` with respect to the state.
+    """
+
+    mean: FloatArray
+    var: FloatArray
+    jac: FloatArray | None = None
+
+
+@runtime_checkable
+class PredictionModel(Protocol):
+    """``p(x_k | x_{k-1}, u_{k-1})`` as a Gaussian on the state change."""
+
+    state_dim: int
+    control_dim: int
+
+    def predict(
+        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
+    ) -> ModelOutput:
+        """Change ``x_k - x_{k-1}`` for states ``x (M, n)`` and controls ``u (k,)`` or ``(M, k)``.
+
+        ``var=False`` may skip the variance (returned as zeros) where that saves work.
+        """
+        ...
+
+
+@runtime_checkable
+class ObservationModel(Protocol):
+    """``p(z_k | x_k)`` as a Gaussian."""
+
+    state_dim: int
+    obs_dim: int
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        """Observation of states ``x (M, n)``: mean, variance ``(M, m)``, Jacobian ``(M, m, n)``."""
+        ...
+
+
+def controls_for(u: FloatArray, m: int) -> FloatArray:
+    """Broadcast a control ``(k,)`` or ``(M, k)`` to ``(M, k)``."""
+    u = np.asarray(u, dtype=np.float64)
+    return np.broadcast_to(u, (m, u.shape[-1])) if u.ndim == 1 else u
+
+
+@dataclass(frozen=True)
+class LinearGaussianPrediction:
+    """``x_k = A x_{k-1} + B u_{k-1} + w``, ``w ~ N(0, diag(q))``."""
+
+    a: FloatArray
+    b: FloatArray
+    q: FloatArray
+    state_dim: int = field(init=False)
+    control_dim: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state_dim", self.a.shape[0])
+        object.__setattr__(self, "control_dim", self.b.shape[1])
+
+    def predict(
+        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
+    ) -> ModelOutput:
+        uu = controls_for(u, x.shape[0])
+        change = x @ (self.a - np.eye(self.state_dim)).T + uu @ self.b.T
+        j = (
+            np.broadcast_to(self.a - np.eye(self.state_dim), (x.shape[0], *self.a.shape))
+            if jac
+            else None
+        )
+        return ModelOutput(change, np.broadcast_to(self.q, change.shape), j)
+
+
+@dataclass(frozen=True)
+class LinearGaussianObservation:
+    """``z = H x + v``, ``v ~ N(0, diag(r))``."""
+
+    h: FloatArray
+    r: FloatArray
+    state_dim: int = field(init=False)
+    obs_dim: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state_dim", self.h.shape[1])
+        object.__setattr__(self, "obs_dim", self.h.shape[0])
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        z = x @ self.h.T
+        j = np.broadcast_to(self.h, (x.shape[0], *self.h.shape)) if jac else None
+        return ModelOutput(z, np.broadcast_to(self.r, z.shape), j)

@@ -1,0 +1,248 @@
+"""Filters vs the closed-form Kalman filter, unscented weights, angles, robustness."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from estimator_service.filters import (
+    EKF,
+    PF,
+    UKF,
+    GaussianBelief,
+    ParticleBelief,
+    Wrapping,
+    sigma_weights,
+    systematic_resample,
+)
+from estimator_service.models import (
+    LinearGaussianObservation,
+    LinearGaussianPrediction,
+    ModelOutput,
+)
+
+DT = 0.25
+A = np.array([[1, 0, DT, 0], [0, 1, 0, DT], [0, 0, 0.95, 0], [0, 0, 0, 0.9]])
+B = np.array([[0, 0], [0, 0], [DT, 0], [0, DT]])
+Q = np.array([1e-3, 2e-3, 1e-2, 2e-2])
+H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [1.0, 1.0, 0, 0]])
+R = np.array([0.05, 0.08, 0.1])
+PRED = LinearGaussianPrediction(A, B, Q)
+OBS = LinearGaussianObservation(H, R)
+PRIOR = GaussianBelief(np.array([0.5, -0.2, 0.1, 0.0]), np.diag([0.3, 0.3, 0.1, 0.1]))
+
+
+def kalman(mean, cov, u, z, valid):
+    mean, cov = A @ mean + B @ u, A @ cov @ A.T + np.diag(Q)
+    idx = np.flatnonzero(valid)
+    if idx.size:
+        h, r = H[idx], np.diag(R[idx])
+        s = h @ cov @ h.T + r
+        k = cov @ h.T @ np.linalg.inv(s)
+        mean = mean + k @ (z[idx] - h @ mean)
+        cov = (np.eye(4) - k @ h) @ cov
+    return mean, cov
+
+
+def scenario(steps: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    x = PRIOR.mean.copy()
+    for k in range(steps):
+        u = rng.normal(size=2)
+        x = A @ x + B @ u + rng.normal(size=4) * np.sqrt(Q)
+        z = H @ x + rng.normal(size=3) * np.sqrt(R)
+        valid = rng.random(3) < 0.6 if k % 5 else np.zeros(3, bool)  # subsets and none
+        yield u, z, valid
+
+
+@pytest.mark.parametrize("make", [lambda: EKF(PRED, OBS), lambda: UKF(PRED, OBS)])
+def test_ekf_and_ukf_equal_kalman_filter_on_linear_gaussian_system(make) -> None:
+    filt = make()
+    belief, mean, cov = PRIOR, PRIOR.mean, PRIOR.cov
+    for u, z, valid in scenario(60):
+        belief, info = filt.step(belief, u, z, valid)
+        mean, cov = kalman(mean, cov, u, z, valid)
+        np.testing.assert_allclose(belief.mean, mean, atol=1e-9)
+        np.testing.assert_allclose(belief.cov, cov, atol=1e-9)
+        assert info.dof == valid.sum() and not info.diverged
+        assert math.isnan(info.nis) == (valid.sum() == 0)
+
+
+def test_particle_filter_matches_kalman_within_monte_carlo_error() -> None:
+    pf = PF(PRED, OBS, n_particles=20000, resample_below=0.5)
+    rng = np.random.default_rng(3)
+    belief = pf.initial(PRIOR, rng)
+    mean, cov = PRIOR.mean, PRIOR.cov
+    for u, z, valid in scenario(15, seed=1):
+        belief, info = pf.step(belief, u, z, valid, rng)
+        mean, cov = kalman(mean, cov, u, z, valid)
+    g = pf.gaussian(belief)
+    se = np.sqrt(np.diag(cov) / info.ess)
+    assert np.all(np.abs(g.mean - mean) < 5 * se + 1e-3)
+    np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.15)
+
+
+def test_particle_filter_is_seeded_deterministic() -> None:
+    pf = PF(PRED, OBS, n_particles=500)
+    runs = []
+    for _ in range(2):
+        rng = np.random.default_rng(42)
+        b = pf.initial(PRIOR, rng)
+        for u, z, valid in scenario(10):
+            b, _ = pf.step(b, u, z, valid, rng)
+        runs.append(b)
+    np.testing.assert_array_equal(runs[0].particles, runs[1].particles)
+    np.testing.assert_array_equal(runs[0].log_weights, runs[1].log_weights)
+
+
+@pytest.mark.parametrize("n", [1, 4, 12])
+def test_sigma_points_reproduce_mean_and_covariance(n: int) -> None:
+    rng = np.random.default_rng(n)
+    a = rng.normal(size=(n, n))
+    belief = GaussianBelief(rng.normal(size=n), a @ a.T + np.eye(n))
+    pred = LinearGaussianPrediction(np.eye(n), np.zeros((n, 1)), np.ones(n))
+    ukf = UKF(pred, LinearGaussianObservation(np.eye(n), np.ones(n)))
+    wm, wc, _ = sigma_weights(n, 1e-3, 2.0, 0.0)
+    assert wm.sum() == pytest.approx(1.0, abs=1e-9)
+    x = ukf.sigma_points(belief)
+    np.testing.assert_allclose(wm @ x, belief.mean, atol=1e-8)
+    dev = x - belief.mean
+    np.testing.assert_allclose((dev * wc[:, None]).T @ dev, belief.cov, rtol=1e-6, atol=1e-8)
+
+
+@dataclass(frozen=True)
+class AngleObs:
+    """Observes a state angle directly (first component)."""
+
+    state_dim: int = 2
+    obs_dim: int = 1
+    r: float = 0.01
+
+    def observe(self, x, *, jac=False, var=True):
+        j = np.broadcast_to(np.array([[1.0, 0.0]]), (len(x), 1, 2)) if jac else None
+        return ModelOutput(x[:, :1].copy(), np.full((len(x), 1), self.r), j)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf", "pf"])
+@pytest.mark.parametrize("period", [2 * math.pi, math.pi])
+def test_angle_wrap_around_gives_small_innovations(kind: str, period: float) -> None:
+    """Yaw crossing pi (period 2 pi) and ellipse angle crossing pi/2 (period pi)."""
+    edge = period / 2
+    pred = LinearGaussianPrediction(np.eye(2), np.zeros((2, 1)), np.array([1e-4, 1e-4]))
+    wrap = Wrapping(np.array([period, 0.0]), np.array([period]))
+    prior = GaussianBelief(np.array([edge - 0.02, 0.0]), np.diag([0.01, 0.01]))
+    z = np.array([-edge + 0.02])  # 0.04 away across the wrap
+    if kind == "pf":
+        pf, rng = PF(pred, AngleObs(), wrap, n_particles=4000), np.random.default_rng(0)
+        post, info = pf.step(pf.initial(prior, rng), np.zeros(1), z, None, rng)
+        mean = pf.gaussian(post).mean
+    else:
+        filt = (EKF if kind == "ekf" else UKF)(pred, AngleObs(), wrap)
+        post, info = filt.step(prior, np.zeros(1), z, None)
+        mean = post.mean
+    assert info.nis < 1.0 and not info.diverged
+    err = (mean[0] - edge + period / 2) % period - period / 2  # distance to the wrap point
+    assert abs(err) < 0.03
+
+
+def test_missing_camera_steps_only_predict() -> None:
+    for filt in (EKF(PRED, OBS), UKF(PRED, OBS)):
+        pred_only = filt.predict(PRIOR, np.ones(2))
+        post, info = filt.step(PRIOR, np.ones(2), np.zeros(3), np.zeros(3, bool))
+        np.testing.assert_array_equal(post.mean, pred_only.mean)
+        assert math.isnan(info.nis) and info.dof == 0
+
+
+@dataclass(frozen=True)
+class Pendulum:
+    state_dim: int = 2
+    control_dim: int = 1
+
+    def predict(self, x, u, *, jac=False, var=True):
+        th, w = x[:, 0], x[:, 1]
+        change = np.stack([DT * w, DT * (-9.81 * np.sin(th) - 0.3 * w + u[0])], axis=1)
+        j = None
+        if jac:
+            j = np.zeros((len(x), 2, 2))
+            j[:, 0, 1] = DT
+            j[:, 1, 0] = -DT * 9.81 * np.cos(th)
+            j[:, 1, 1] = -0.3 * DT
+        return ModelOutput(change, np.full(change.shape, 1e-4), j)
+
+
+@dataclass(frozen=True)
+class SinObs:
+    state_dim: int = 2
+    obs_dim: int = 2
+
+    def observe(self, x, *, jac=False, var=True):
+        z = np.stack([np.sin(x[:, 0]), x[:, 1] ** 2], axis=1)
+        j = None
+        if jac:
+            j = np.zeros((len(x), 2, 2))
+            j[:, 0, 0] = np.cos(x[:, 0])
+            j[:, 1, 1] = 2 * x[:, 1]
+        return ModelOutput(z, np.full(z.shape, 1e-2), j)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_covariance_stays_positive_definite_over_10000_steps(cls) -> None:
+    filt = cls(Pendulum(), SinObs())
+    rng = np.random.default_rng(0)
+    belief = GaussianBelief(np.array([0.3, 0.0]), np.eye(2) * 0.1)
+    x = np.array([0.5, 0.0])
+    for k in range(10_000):
+        u = np.array([2.0 * math.sin(0.01 * k)])
+        x = x + Pendulum().predict(x[None], u).mean[0] + rng.normal(size=2) * 1e-2
+        z = SinObs().observe(x[None]).mean[0] + rng.normal(size=2) * 0.1
+        belief, info = filt.step(belief, u, z, np.array([k % 3 == 0, k % 2 == 0]))
+        assert np.all(np.isfinite(belief.mean))
+        np.testing.assert_array_equal(belief.cov, belief.cov.T)
+        assert np.linalg.eigvalsh(belief.cov)[0] > 0
+
+
+@dataclass(frozen=True)
+class BrokenObs:
+    state_dim: int = 4
+    obs_dim: int = 3
+
+    def observe(self, x, *, jac=False, var=True):
+        nan = np.full((len(x), 3), np.nan)
+        return ModelOutput(nan, nan, np.full((len(x), 3, 4), np.nan) if jac else None)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf", "pf"])
+def test_divergence_is_flagged_not_returned_as_nan(kind: str) -> None:
+    z = np.zeros(3)
+    if kind == "pf":
+        pf, rng = PF(PRED, BrokenObs(), n_particles=100), np.random.default_rng(0)
+        post, info = pf.step(pf.initial(PRIOR, rng), np.zeros(2), z, None, rng)
+        assert np.all(np.isfinite(post.particles)) and np.all(np.isfinite(post.log_weights))
+    else:
+        filt = (EKF if kind == "ekf" else UKF)(PRED, BrokenObs())
+        post, info = filt.step(PRIOR, np.zeros(2), z, None)
+        assert np.all(np.isfinite(post.mean)) and np.all(np.isfinite(post.cov))
+    assert info.diverged
+
+
+def test_implausible_innovation_is_flagged() -> None:
+    _, info = EKF(PRED, OBS).step(PRIOR, np.zeros(2), np.array([100.0, -100.0, 0.0]), None)
+    assert info.diverged and info.nis > 1e3
+
+
+def test_systematic_resampling_counts_follow_weights() -> None:
+    rng = np.random.default_rng(1)
+    w = rng.random(1000) * (rng.random(1000) > 0.3)
+    w /= w.sum()
+    counts = np.bincount(systematic_resample(w, rng), minlength=w.size)
+    assert counts.sum() == w.size
+    assert np.all(np.abs(counts - w.size * w) < 1.0)  # low variance: floor or ceil of M w
+    assert np.all(counts[w == 0] == 0)
+
+
+def test_particle_belief_ess() -> None:
+    b = ParticleBelief(np.zeros((4, 1)), np.log(np.array([0.25, 0.25, 0.25, 0.25])))
+    assert b.ess == pytest.approx(4.0)
