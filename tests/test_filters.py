@@ -198,7 +198,7 @@ def test_covariance_stays_positive_definite_over_10000_steps(cls) -> None:
         u = np.array([2.0 * math.sin(0.01 * k)])
         x = x + Pendulum().predict(x[None], u).mean[0] + rng.normal(size=2) * 1e-2
         z = SinObs().observe(x[None]).mean[0] + rng.normal(size=2) * 0.1
-        belief, info = filt.step(belief, u, z, np.array([k % 3 == 0, k % 2 == 0]))
+        belief, _ = filt.step(belief, u, z, np.array([k % 3 == 0, k % 2 == 0]))
         assert np.all(np.isfinite(belief.mean))
         np.testing.assert_array_equal(belief.cov, belief.cov.T)
         assert np.linalg.eigvalsh(belief.cov)[0] > 0
