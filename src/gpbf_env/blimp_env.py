@@ -67,7 +67,8 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     ## Arguments
     ``task`` ("hover" | "waypoint"), ``dt``, ``substeps``, ``camera_rate_hz``,
-    ``n_cameras``, ``pixel_noise``, ``room``, ``params``, ``randomize`` (all of
+    ``n_cameras``, ``pixel_noise``, ``camera_mode`` (``"closed_form"`` or the slow
+    ``"rendered"``), ``image_noise``, ``room``, ``params``, ``randomize`` (all of
     :class:`~gpbf_env.core.WorldConfig`), and ``render_mode`` (``"rgb_array"`` or None).
     """
 
@@ -189,7 +190,9 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     def _observe(self, noise: NDArray[np.float64]) -> ObsType:
         frames = self.config.frame_schedule(np.array([self._step]))
-        ell, valid = observe(self.config, np.array([self._state]), frames, noise[None, :])
+        ell, valid = observe(
+            self.config, np.array([self._state]), frames, noise[None, :], [self.np_random]
+        )
         self._last_obs = {"ellipses": ell[0], "valid": valid[0]}
         return {"ellipses": ell[0].copy(), "valid": valid[0].copy()}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -10,7 +11,15 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
-from gpbf_env.camera import N_BOUNDARY, Camera, default_cameras, euler_to_matrix, outline_ellipses
+from gpbf_env.camera import (
+    N_BOUNDARY,
+    Camera,
+    default_cameras,
+    euler_to_matrix,
+    fit_ellipse_image,
+    outline_ellipses,
+    render_frame,
+)
 from gpbf_env.params import BlimpParams, randomize_params
 from gpbf_env.tasks import TASKS, RewardWeights
 
@@ -39,7 +48,13 @@ class WorldConfig:
     n_cameras
         Number of wall cameras (1-4).
     pixel_noise
-        Standard deviation (px) of the noise on each outline sample.
+        Standard deviation (px) of the noise on each outline sample (closed-form mode).
+    camera_mode
+        ``"closed_form"`` (fast: exact outline conic, distortion, noise, moment fit) or
+        ``"rendered"`` (slow, like the paper's cameras: a noisy 640x480 image, background
+        subtraction, ellipse fit to the foreground).
+    image_noise
+        Grey-level noise standard deviation of rendered images.
     params
         Nominal physical parameters.
     randomize
@@ -53,6 +68,8 @@ class WorldConfig:
     camera_rate_hz: float = 1.0
     n_cameras: int = 2
     pixel_noise: float = 1.0
+    camera_mode: str = "closed_form"
+    image_noise: float = 4.0
     params: BlimpParams = field(default_factory=BlimpParams)
     randomize: float = 0.0
     weights: RewardWeights = field(default_factory=RewardWeights)
@@ -66,6 +83,10 @@ class WorldConfig:
             raise ValueError(f"substeps must be >= 1, got {self.substeps!r}")
         if not 0 < self.camera_rate_hz <= 1.0 / self.dt + 1e-9:
             raise ValueError(f"camera_rate_hz must be in (0, 1/dt], got {self.camera_rate_hz!r}")
+        if self.camera_mode not in ("closed_form", "rendered"):
+            raise ValueError(
+                f"camera_mode must be 'closed_form' or 'rendered', got {self.camera_mode!r}"
+            )
         if self.pixel_noise < 0:
             raise ValueError(f"pixel_noise must be >= 0, got {self.pixel_noise!r}")
         steps = 1.0 / (self.camera_rate_hz * self.dt)
@@ -164,7 +185,11 @@ def initial_state(rng: np.random.Generator, room: tuple[float, float, float]) ->
 
 
 def observe(
-    cfg: WorldConfig, state: FloatArray, frames: NDArray[np.bool_], noise: FloatArray
+    cfg: WorldConfig,
+    state: FloatArray,
+    frames: NDArray[np.bool_],
+    noise: FloatArray,
+    rngs: Sequence[np.random.Generator] = (),
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Camera ellipses of ``N`` blimps.
 
@@ -175,6 +200,8 @@ def observe(
         Cameras delivering a frame this step.
     noise: (N, C * K * 2)
         Standard-normal draws, scaled here by ``cfg.pixel_noise``.
+    rngs
+        One generator per blimp for the image noise of the rendered mode.
 
     Returns
     -------
@@ -187,10 +214,33 @@ def observe(
     rows = np.flatnonzero(frames.any(axis=1))
     if rows.size:
         rot = euler_to_matrix(state[rows, 3:6])
-        px = cfg.pixel_noise * noise[rows].reshape(rows.size, c, N_BOUNDARY, 2)
-        e, vis = outline_ellipses(cfg.cameras, state[rows, :3], rot, cfg.semi_axes, px)
+        if cfg.camera_mode == "rendered":
+            e, vis = _rendered(cfg, state[rows, :3], rot, frames[rows], [rngs[i] for i in rows])
+        else:
+            px = cfg.pixel_noise * noise[rows].reshape(rows.size, c, N_BOUNDARY, 2)
+            e, vis = outline_ellipses(cfg.cameras, state[rows, :3], rot, cfg.semi_axes, px)
         ell[rows], valid[rows] = e, vis & frames[rows]
     ell[~valid] = 0.0
     low, high = cfg.ellipse_bounds
     ell32 = np.clip(ell.astype(np.float32), low, high)
     return ell32, valid.astype(np.int8)
+
+
+def _rendered(
+    cfg: WorldConfig,
+    position: FloatArray,
+    rotation: FloatArray,
+    frames: NDArray[np.bool_],
+    rngs: Sequence[np.random.Generator],
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The slow camera mode: render each due frame, subtract the background, fit."""
+    out = np.zeros((*frames.shape, 5))
+    vis = np.zeros(frames.shape, dtype=bool)
+    for i, k in zip(*np.nonzero(frames), strict=True):  # one image per frame: inherently slow
+        cam = cfg.cameras[k]
+        img = render_frame(cam, position[i], rotation[i], cfg.semi_axes, rngs[i], cfg.image_noise)
+        fit = fit_ellipse_image(cam, img)
+        w, h = cam.size
+        if fit is not None and 0 <= fit[0] <= w - 1 and 0 <= fit[1] <= h - 1:
+            out[i, k], vis[i, k] = fit, True
+    return out, vis

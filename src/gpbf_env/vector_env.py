@@ -164,7 +164,7 @@ class BlimpVectorEnv(VectorEnv):
 
     def _observe(self, rows: NDArray[np.int64], noise: NDArray[np.float64]) -> dict[str, Any]:
         frames = self.config.frame_schedule(self._steps)
-        ell, valid = observe(self.config, self._state.T, frames, noise)
+        ell, valid = observe(self.config, self._state.T, frames, noise, self._rngs)
         return {"ellipses": ell, "valid": valid}
 
     def _info(self, parts: dict[str, Any] | None, crashed: Any = None) -> dict[str, Any]:
