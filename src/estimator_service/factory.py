@@ -1,0 +1,127 @@
+"""Build any (filter, model kind) pair from trained model files: the paper's 3 x 5 grid.
+
+A model folder holds, for each kind ``k`` in ``gp``, ``egp``, ``hetgp``, ``sparse``,
+``prediction_k.npz`` and ``observation_k.npz`` (see :mod:`estimator_service.gp.io`), and
+``parametric.npz`` with the blimp ODE and the camera model (which the enhanced GPs use as
+their mean functions).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from estimator_service.filters import EKF, PF, UKF, Wrapping
+from estimator_service.gp import load_gp
+from estimator_service.models.base import ObservationModel, PredictionModel
+from estimator_service.models.blimp import BlimpODE
+from estimator_service.models.camera import CameraModel, PinholeCalibration
+from estimator_service.models.gp_models import GPObservationModel, GPPredictionModel
+
+__all__ = [
+    "FILTER_KINDS",
+    "MODEL_KINDS",
+    "blimp_wrapping",
+    "build_filter",
+    "load_models",
+    "load_parametric",
+    "make_filter",
+    "save_parametric",
+]
+
+FILTER_KINDS = ("ukf", "ekf", "pf")
+MODEL_KINDS = ("param", "gp", "egp", "hetgp", "sparse")
+STATE_DIM = 12
+
+
+def blimp_wrapping(n_cameras: int) -> Wrapping:
+    """Euler angles (period 2 pi) and ellipse angles (period pi) of the blimp."""
+    state = np.zeros(STATE_DIM)
+    state[3:6] = 2 * math.pi
+    return Wrapping(state, np.tile([0.0, 0.0, 0.0, 0.0, math.pi], n_cameras))
+
+
+def save_parametric(ode: BlimpODE, cam: CameraModel, path: str | os.PathLike[str]) -> Path:
+    """Write both parametric models to one ``.npz`` atomically."""
+    path = Path(path)
+    arrays = {
+        "ode_params": ode.params, "ode_noise": ode.noise_var,
+        "ode_fixed": np.array([ode.mass, ode.tail_arm, ode.dt, ode.substeps]),
+        "cam_position": np.stack([c.position for c in cam.cameras]),
+        "cam_rotation": np.stack([c.rotation for c in cam.cameras]),
+        "cam_focal": np.array([c.focal for c in cam.cameras]),
+        "cam_principal": np.array([c.principal_point for c in cam.cameras]),
+        "cam_axes": cam.semi_axes, "cam_noise": cam.noise_var,
+    }  # fmt: skip
+    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent)
+    with os.fdopen(fd, "wb") as fh:
+        np.savez(fh, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel]:
+    """Read the models written by :func:`save_parametric`."""
+    with np.load(path, allow_pickle=False) as d:
+        missing = {"ode_params", "ode_noise", "ode_fixed", "cam_axes", "cam_noise"} - set(d.files)
+        if missing:
+            raise ValueError(f"parametric model file {os.fspath(path)!r} lacks {sorted(missing)}")
+        mass, tail, dt, sub = d["ode_fixed"]
+        ode = BlimpODE(
+            d["ode_params"], d["ode_noise"], float(mass), float(tail), float(dt), int(sub)
+        )
+        cams = tuple(
+            PinholeCalibration(p, r, float(f), (float(c[0]), float(c[1])))
+            for p, r, f, c in zip(
+                d["cam_position"],
+                d["cam_rotation"],
+                d["cam_focal"],
+                d["cam_principal"],
+                strict=True,
+            )
+        )
+        return ode, CameraModel(cams, d["cam_axes"], d["cam_noise"])
+
+
+def load_models(
+    model_dir: str | os.PathLike[str], kind: str
+) -> tuple[PredictionModel, ObservationModel]:
+    """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`)."""
+    if kind not in MODEL_KINDS:
+        raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
+    folder = Path(model_dir)
+    ode, cam = load_parametric(folder / "parametric.npz")
+    if kind == "param":
+        return ode, cam
+    extra_p, extra_o = {}, {}
+    if kind == "egp":
+        extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
+        extra_o = {"mean_function": cam.mean}
+    pred = load_gp(folder / f"prediction_{kind}.npz", **extra_p)
+    obs = load_gp(folder / f"observation_{kind}.npz", **extra_o)
+    return GPPredictionModel(pred, STATE_DIM), GPObservationModel(obs)
+
+
+def make_filter(
+    kind: str, prediction: PredictionModel, observation: ObservationModel, **options: object
+) -> EKF | UKF | PF:
+    """A filter of ``kind`` (``ekf``, ``ukf``, ``pf``) over the given models.
+
+    ``options`` go to the filter (e.g. ``alpha`` for the UKF, ``n_particles`` for the PF).
+    """
+    if kind not in FILTER_KINDS:
+        raise ValueError(f"filter kind must be one of {FILTER_KINDS}, got {kind!r}")
+    cls = {"ekf": EKF, "ukf": UKF, "pf": PF}[kind]
+    options.setdefault("wrapping", blimp_wrapping(observation.obs_dim // 5))
+    return cls(prediction, observation, **options)  # type: ignore[arg-type]
+
+
+def build_filter(
+    filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], **options: object
+):
+    """``make_filter(filter_kind, *load_models(model_dir, model_kind), **options)``."""
+    return make_filter(filter_kind, *load_models(model_dir, model_kind), **options)

@@ -1,0 +1,149 @@
+"""Parametric blimp models (fitting, Jacobians) and the (filter x model) factory."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator_service.factory import (
+    FILTER_KINDS,
+    MODEL_KINDS,
+    build_filter,
+    load_parametric,
+    save_parametric,
+)
+from estimator_service.filters import PF, GaussianBelief
+from estimator_service.gp import fit_enhanced, fit_exact, fit_hetero, fit_sparse, save_gp
+from estimator_service.models.blimp import DEFAULT_PARAMS, BlimpODE, fit_blimp_ode, integrate
+from estimator_service.models.camera import CameraModel, PinholeCalibration, fit_camera_model
+
+
+def look_at(pos, target) -> PinholeCalibration:
+    pos = np.asarray(pos, float)
+    f = np.asarray(target, float) - pos
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0, 0, 1.0])
+    r /= np.linalg.norm(r)
+    return PinholeCalibration(pos, np.stack([r, np.cross(f, r), f]), 380.0, (319.5, 239.5))
+
+
+CAMS = (look_at([0.05, 0.05, 3.9], [5, 3, 1.6]), look_at([9.95, 5.95, 3.9], [5, 3, 1.6]))
+
+
+@pytest.fixture(scope="module")
+def flight() -> dict[str, np.ndarray]:
+    """A flight of the parametric model itself, with known parameters."""
+    rng = np.random.default_rng(0)
+    true = DEFAULT_PARAMS * np.exp(rng.normal(0, 0.2, 16))
+    true[10] = -0.02  # net lift: slightly heavy
+    x, xs, us, xn = np.array([5, 3, 2, 0.05, 0.02, 0.3, 0, 0, 0, 0, 0, 0.0]), [], [], []
+    u = np.zeros(3)
+    for k in range(400):
+        if k % 4 == 0:
+            u = np.clip(rng.normal(0, 0.6, 3), -1, 1)
+        nxt = integrate(x[None], u[None], true, (0.44, 0.8), 0.25, 2)[0]
+        xs.append(x)
+        us.append(u)
+        xn.append(nxt)
+        x = nxt
+    return {"true": true, "x": np.array(xs), "u": np.array(us), "x_next": np.array(xn)}
+
+
+def test_ode_fit_recovers_its_own_parameters(flight) -> None:
+    fit = fit_blimp_ode(flight["x"], flight["u"], flight["x_next"])
+    np.testing.assert_allclose(fit.params, flight["true"], rtol=1e-3, atol=1e-6)
+    assert np.all(fit.noise_var < 1e-8)
+
+
+def test_ode_complex_step_jacobian_matches_finite_differences(flight) -> None:
+    ode = BlimpODE(flight["true"], np.ones(12))
+    x, u = flight["x"][50:53], flight["u"][50:53]
+    jac = ode.predict(x, u, jac=True).jac
+    h = 1e-6
+    fd = np.stack(
+        [(ode.change(x + h * e, u) - ode.change(x - h * e, u)) / (2 * h) for e in np.eye(12)], -1
+    )
+    np.testing.assert_allclose(jac, fd, atol=1e-6)
+
+
+def test_camera_model_fit_recovers_envelope_axes(flight) -> None:
+    truth = CameraModel(CAMS, np.array([0.85, 0.32]), np.ones(10))
+    z = truth.mean(flight["x"])
+    valid = np.ones((len(z), 2), bool)
+    fit = fit_camera_model(CAMS, flight["x"], z, valid)
+    np.testing.assert_allclose(fit.semi_axes, [0.85, 0.32], rtol=1e-6)
+
+
+def test_camera_model_jacobian_linearises_the_model(flight) -> None:
+    cam = CameraModel(CAMS, np.array([0.85, 0.32]), np.ones(10))
+    x = flight["x"][10:14]
+    out = cam.observe(x, jac=True)
+    delta = np.random.default_rng(1).normal(size=x.shape) * 1e-4
+    moved = cam.mean(x + delta)
+    lin = out.mean + np.einsum("mij,mj->mi", out.jac, delta)
+    assert np.max(np.abs(moved - lin)) < 1e-5 * max(1.0, np.max(np.abs(out.jac)))
+    projected_centre = CAMS[0].project(x[:, :3])
+    np.testing.assert_allclose(out.mean[:, :2], projected_centre)
+
+
+@pytest.fixture(scope="module")
+def model_dir(flight, tmp_path_factory) -> Path:
+    """Every model kind trained on a little data, saved as the factory expects."""
+    folder = tmp_path_factory.mktemp("models")
+    x, u, xn = flight["x"], flight["u"], flight["x_next"]
+    ode = fit_blimp_ode(x, u, xn)
+    cam = CameraModel(CAMS, np.array([0.85, 0.32]), np.full(10, 1.0))
+    save_parametric(ode, cam, folder / "parametric.npz")
+    sel = slice(0, 400, 10)
+    xin, dx = np.concatenate([x, u], 1)[sel], (xn - x)[sel]
+    z = cam.mean(x)[sel] + 0.5
+    quick = {"restarts": 1, "max_iter": 15}
+    fits = {
+        "gp": lambda a, b: fit_exact(a, b, **quick),
+        "sparse": lambda a, b: fit_sparse(a, b, n_pseudo=8, max_iter=15),
+        "hetgp": lambda a, b: fit_hetero(a, b, iterations=1, **quick),
+    }
+    for kind, fit in fits.items():
+        save_gp(fit(xin, dx), folder / f"prediction_{kind}.npz")
+        save_gp(fit(x[sel], z), folder / f"observation_{kind}.npz")
+    pmean = lambda q: ode.change(q[:, :12], q[:, 12:])  # noqa: E731
+    save_gp(fit_enhanced(xin, dx, pmean, fit_exact, **quick), folder / "prediction_egp.npz")
+    save_gp(fit_enhanced(x[sel], z, cam.mean, fit_exact, **quick), folder / "observation_egp.npz")
+    return folder
+
+
+def test_parametric_models_round_trip(model_dir: Path, flight) -> None:
+    ode, cam = load_parametric(model_dir / "parametric.npz")
+    np.testing.assert_allclose(ode.params, flight["true"], rtol=1e-3)
+    assert cam.obs_dim == 10
+
+
+@pytest.mark.parametrize("model_kind", MODEL_KINDS)
+@pytest.mark.parametrize("filter_kind", FILTER_KINDS)
+def test_every_filter_and_model_pair_builds_and_steps(
+    model_dir: Path, flight, filter_kind: str, model_kind: str
+) -> None:
+    opts = {"n_particles": 200} if filter_kind == "pf" else {}
+    filt = build_filter(filter_kind, model_kind, model_dir, **opts)
+    belief = GaussianBelief(flight["x"][20], np.eye(12) * 1e-3)
+    z = CameraModel(CAMS, np.array([0.85, 0.32]), np.ones(10)).mean(flight["x"][21:22])[0]
+    valid = np.array([True] * 5 + [False] * 5)  # one camera reported
+    if isinstance(filt, PF):
+        rng = np.random.default_rng(0)
+        post, info = filt.step(filt.initial(belief, rng), flight["u"][20], z, valid, rng)
+        mean = filt.gaussian(post).mean
+    else:
+        post, info = filt.step(belief, flight["u"][20], z, valid)
+        mean = post.mean
+    assert info.dof == 5 and np.all(np.isfinite(mean))
+    assert abs(mean[5] - flight["x"][21, 5]) < math.pi
+
+
+def test_unknown_kinds_are_rejected(model_dir: Path) -> None:
+    with pytest.raises(ValueError, match="filter kind"):
+        build_filter("kf", "gp", model_dir)
+    with pytest.raises(ValueError, match="model kind"):
+        build_filter("ekf", "nn", model_dir)
