@@ -12,6 +12,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 EXPECTED = {
+    "bench_filters.py": {
+        "ekf_ms", "ukf_ms", "pf_exact_ms", "pf_sparse_ms",
+        "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",
+    },
     "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
     "bench_gp.py": {
         "batch_mean_var_s", "achieved_gflops", "matmul_gflops", "speedup_vs_sklearn",

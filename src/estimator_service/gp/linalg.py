@@ -46,13 +46,20 @@ def robust_cholesky(k: FloatArray, max_tries: int = 8) -> tuple[FloatArray, floa
 
 
 def tri_solve(l_fortran: FloatArray, b: FloatArray, overwrite_b: bool = False) -> FloatArray:
-    """Solve ``L X = B`` for lower-triangular ``L (n, n)`` and ``B (n, M)`` with BLAS ``trsm``.
+    """Solve ``L X = B`` for lower-triangular ``L (n, n)`` and ``B (n, M)``.
+
+    One right-hand side goes to BLAS ``trsv``, more to LAPACK ``trtrs`` (measured faster
+    here than calling ``trsm`` through its wrapper for skinny ``B``).
 
     ``L`` should be Fortran-ordered (a posterior stores it so) and ``B`` is best passed
     Fortran-ordered too, e.g. the transpose of a C-ordered ``(M, n)`` array: then no copy
     is made and with ``overwrite_b`` the solve happens in place.
     """
-    return blas.dtrsm(1.0, l_fortran, b, lower=1, overwrite_b=int(overwrite_b))
+    if b.shape[1] == 1:  # one query (the EKF): trsv streams L once, about twice as fast
+        return blas.dtrsv(l_fortran, b[:, 0], lower=1, overwrite_x=int(overwrite_b))[:, None]
+    return sla.solve_triangular(
+        l_fortran, b, lower=True, check_finite=False, overwrite_b=overwrite_b
+    )
 
 
 def chol_solve(l: FloatArray, b: FloatArray) -> FloatArray:
