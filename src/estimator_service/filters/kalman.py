@@ -58,8 +58,38 @@ def _kalman_update(
     return GaussianBelief(mean, cov), StepInfo(nis, len(r), implausible(nis, len(r)))
 
 
+class _GaussianFilter:
+    """What the EKF and UKF share: angle handling and the predict-then-update step."""
+
+    prediction: PredictionModel
+    observation: ObservationModel
+    wrapping: Wrapping | None
+
+    @property
+    def _wrap(self) -> Wrapping:
+        return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
+
+    def predict(self, belief: GaussianBelief, u: FloatArray) -> GaussianBelief:
+        raise NotImplementedError
+
+    def update(
+        self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None
+    ) -> tuple[GaussianBelief, StepInfo]:
+        raise NotImplementedError
+
+    def step(
+        self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
+        valid: NDArray[np.bool_] | None = None,
+    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
+        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``."""
+        prior = self.predict(belief, u)
+        if z is None:
+            return prior, StepInfo()
+        return self.update(prior, z, valid)
+
+
 @dataclass(frozen=True)
-class EKF:
+class EKF(_GaussianFilter):
     """GP-EKF: linearise the models' means at the current estimate (paper Table 2).
 
     ``G = I + d(mean change)/dx`` and ``H = d(mean obs)/dx`` come from the models'
@@ -72,10 +102,6 @@ class EKF:
     observation: ObservationModel
     wrapping: Wrapping | None = None
     name: str = "EKF"
-
-    @property
-    def _wrap(self) -> Wrapping:
-        return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
 
     def predict(self, belief: GaussianBelief, u: FloatArray) -> GaussianBelief:
         """Steps 2-5 of Table 2."""
@@ -99,16 +125,6 @@ class EKF:
         s = h @ prior.cov @ h.T + np.diag(r_noise)
         return _kalman_update(prior, r, s, prior.cov @ h.T, self._wrap, h, r_noise)
 
-    def step(
-        self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
-        valid: NDArray[np.bool_] | None = None,
-    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``."""
-        prior = self.predict(belief, u)
-        if z is None:
-            return prior, StepInfo()
-        return self.update(prior, z, valid)
-
 
 def sigma_weights(
     n: int, alpha: float, beta: float, kappa: float
@@ -123,7 +139,7 @@ def sigma_weights(
 
 
 @dataclass(frozen=True)
-class UKF:
+class UKF(_GaussianFilter):
     """GP-UKF: unscented transform through the models' means (paper Table 3).
 
     All ``2n + 1`` sigma points go through a model in one batched call. ``Q`` and ``R`` are
@@ -147,10 +163,6 @@ class UKF:
         object.__setattr__(
             self, "_w", sigma_weights(self.prediction.state_dim, self.alpha, self.beta, self.kappa)
         )
-
-    @property
-    def _wrap(self) -> Wrapping:
-        return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
 
     def sigma_points(self, belief: GaussianBelief) -> FloatArray:
         """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns."""
@@ -197,13 +209,3 @@ class UKF:
         pxz = (dx * wc[:, None]).T @ dz
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zhat, idx)
         return _kalman_update(prior, r, s, pxz, self._wrap)
-
-    def step(
-        self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
-        valid: NDArray[np.bool_] | None = None,
-    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``."""
-        prior = self.predict(belief, u)
-        if z is None:
-            return prior, StepInfo()
-        return self.update(prior, z, valid)
