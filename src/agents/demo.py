@@ -29,7 +29,7 @@ __all__ = ["fly", "main"]
 
 def fly(seconds: float = 60.0, seed: int = 0) -> dict[str, np.ndarray]:
     """Fly the waypoint task with :class:`WaypointPilot`; returns the logged arrays."""
-    env = gym.make("gpbf_env/BlimpWaypoint-v0", max_episode_steps=None)
+    env = gym.make("gpbf_env/BlimpWaypoint-v0", max_episode_steps=10**9)
     pilot = WaypointPilot()
     obs, info = env.reset(seed=seed)
     steps = round(seconds / env.unwrapped.config.dt)

@@ -1,7 +1,8 @@
 """Build any (filter, model kind) pair from trained model files: the paper's 3 x 5 grid.
 
 A model folder holds, for each kind ``k`` in ``gp``, ``egp``, ``hetgp``, ``sparse``,
-``prediction_k.npz`` and ``observation_k.npz`` (see :mod:`estimator_service.gp.io`), and
+``prediction_k.npz`` and either ``observation_k.npz`` or one ``observation_k_cam<i>.npz``
+per camera (see :mod:`estimator_service.gp.io`), and
 ``parametric.npz`` with the blimp ODE and the camera model (which the enhanced GPs use as
 their mean functions).
 """
@@ -20,7 +21,11 @@ from estimator_service.gp import load_gp
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.blimp import BlimpODE
 from estimator_service.models.camera import CameraModel, PinholeCalibration
-from estimator_service.models.gp_models import GPObservationModel, GPPredictionModel
+from estimator_service.models.gp_models import (
+    GPObservationModel,
+    GPPredictionModel,
+    StackedObservationModel,
+)
 
 __all__ = [
     "FILTER_KINDS",
@@ -97,13 +102,31 @@ def load_models(
     ode, cam = load_parametric(folder / "parametric.npz")
     if kind == "param":
         return ode, cam
-    extra_p, extra_o = {}, {}
+    extra_p = {}
     if kind == "egp":
         extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
-        extra_o = {"mean_function": cam.mean}
     pred = load_gp(folder / f"prediction_{kind}.npz", **extra_p)
-    obs = load_gp(folder / f"observation_{kind}.npz", **extra_o)
-    return GPPredictionModel(pred, STATE_DIM), GPObservationModel(obs)
+    return GPPredictionModel(pred, STATE_DIM), _observation(folder, kind, cam)
+
+
+def _observation(folder: Path, kind: str, cam: CameraModel) -> ObservationModel:
+    """One file for all cameras, or one ``observation_<kind>_cam<k>.npz`` per camera."""
+    single = folder / f"observation_{kind}.npz"
+    if single.exists():
+        return GPObservationModel(
+            load_gp(single, **({"mean_function": cam.mean} if kind == "egp" else {}))
+        )
+    parts = []
+    for k in range(len(cam.cameras)):
+        extra = (
+            {"mean_function": lambda x, k=k: cam.mean(x)[:, 5 * k : 5 * k + 5]}
+            if kind == "egp"
+            else {}
+        )
+        parts.append(
+            GPObservationModel(load_gp(folder / f"observation_{kind}_cam{k}.npz", **extra))
+        )
+    return StackedObservationModel(tuple(parts))
 
 
 def make_filter(

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from estimator_service.gp.base import GPModel
 from estimator_service.models.base import ModelOutput, controls_for
 
-__all__ = ["GPObservationModel", "GPPredictionModel"]
+__all__ = ["GPObservationModel", "GPPredictionModel", "StackedObservationModel"]
 
 FloatArray = NDArray[np.float64]
 
@@ -54,3 +54,28 @@ class GPObservationModel:
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         p = self.gp.predict(x, return_var=var, return_jac=jac)
         return ModelOutput(p.mean, p.var if p.var is not None else np.zeros_like(p.mean), p.jac)
+
+
+@dataclass(frozen=True)
+class StackedObservationModel:
+    """Several observation models (e.g. one per camera) side by side: outputs concatenated."""
+
+    parts: tuple
+    state_dim: int = field(init=False)
+    obs_dim: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        dims = {p.state_dim for p in self.parts}
+        if len(dims) != 1:
+            raise ValueError(f"stacked observation models disagree on the state size: {dims}")
+        object.__setattr__(self, "state_dim", dims.pop())
+        object.__setattr__(self, "obs_dim", sum(p.obs_dim for p in self.parts))
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        outs = [p.observe(x, jac=jac, var=var) for p in self.parts]  # a few cameras
+        j = np.concatenate([o.jac for o in outs], axis=1) if jac else None
+        return ModelOutput(
+            np.concatenate([o.mean for o in outs], axis=1),
+            np.concatenate([o.var for o in outs], axis=1),
+            j,
+        )

@@ -1,0 +1,125 @@
+"""Pilots, flight recording, training and tracking, and the gpbf CLI end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from agents.cli import main as gpbf
+from agents.pilots import make_pilot
+from agents.recorder import collect_flight, load_flight, save_flight
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return collect_flight(90, seed=3)
+
+
+def test_scripted_pilot_flies_five_minutes_without_crashing_and_uses_full_fan_range() -> None:
+    env = gym.make("gpbf_env/Blimp-v0", max_episode_steps=10**9)
+    _, info = env.reset(seed=7)
+    pilot = make_pilot("scripted", np.random.default_rng(7))
+    actions = []
+    for _ in range(5 * 60 * 4):
+        a = pilot.act(info["state"])
+        actions.append(a)
+        _, _, terminated, _, info = env.step(a)
+        assert not terminated
+    a = np.array(actions)
+    assert a[:, 0].min() < -0.5 and a[:, 0].max() > 0.9  # reverse and full forward thrust
+    assert a[:, 1].min() < -0.5 and a[:, 1].max() > 0.5  # vector angle both ways
+    assert a[:, 2].min() < -0.5 and a[:, 2].max() > 0.5  # turns both ways
+
+
+def test_collect_is_seeded_and_round_trips(flight, tmp_path: Path) -> None:
+    again = collect_flight(90, seed=3)
+    np.testing.assert_array_equal(flight.state, again.state)
+    np.testing.assert_array_equal(flight.ellipses, again.ellipses)
+    path = save_flight(flight, tmp_path / "f.npz")
+    back = load_flight(path)
+    for name in ("t", "state", "control", "ellipses", "valid", "episode"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(flight, name))
+    assert back.metadata["pilot"] == "scripted" and len(back.metadata["cameras"]) == 2
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_transitions_never_cross_episodes(flight) -> None:
+    ep = flight.episode.copy()
+    ep[100:] += 1  # pretend a crash after row 99
+    f = type(flight)(
+        flight.t, flight.state, flight.control, flight.ellipses, flight.valid, ep, flight.metadata
+    )
+    rows = f.transition_rows()
+    assert 99 not in rows and 98 in rows and 100 in rows
+    _, _, xn = f.transitions()
+    np.testing.assert_array_equal(xn, flight.state[rows + 1])
+
+
+def test_malformed_flight_files_are_rejected(flight, tmp_path: Path) -> None:
+    good = save_flight(flight, tmp_path / "good.npz")
+    trunc = tmp_path / "trunc.npz"
+    trunc.write_bytes(good.read_bytes()[:1000])
+    with pytest.raises(ValueError, match="truncated"):
+        load_flight(trunc)
+    data = dict(np.load(good, allow_pickle=False))
+    data["state"] = data["state"][:, :11]
+    np.savez(tmp_path / "bad.npz", **data)
+    with pytest.raises(ValueError, match="'state'"):
+        load_flight(tmp_path / "bad.npz")
+
+
+def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
+    f, m, png = tmp_path / "f.npz", tmp_path / "models", tmp_path / "track.png"
+    assert gpbf(["collect", "--minutes", "1.5", "--seed", "2", "--out", str(f), "--quiet"]) == 0
+    args = [
+        "train",
+        str(f),
+        "--out",
+        str(m),
+        "--points",
+        "80",
+        "--pseudo",
+        "8",
+        "--restarts",
+        "1",
+        "--max-iter",
+        "8",
+        "--hetero-iterations",
+        "1",
+        "--kinds",
+        "gp,egp,hetgp,sparse",
+        "--quiet",
+    ]
+    assert gpbf(args) == 0
+    assert sorted(p.name for p in m.glob("*.npz"))[:3] == [
+        "observation_egp_cam0.npz",
+        "observation_egp_cam1.npz",
+        "observation_gp_cam0.npz",
+    ]
+    capsys.readouterr()
+    assert (
+        gpbf(
+            [
+                "track",
+                str(f),
+                "--models",
+                str(m),
+                "--filter",
+                "ukf",
+                "--model",
+                "egp",
+                "--plot",
+                str(png),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    scores = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert scores["position_mm"] < 200 and np.isfinite(scores["mll"])
+    assert png.stat().st_size > 10_000
+    assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
