@@ -78,13 +78,9 @@ class SklearnModels:
                 np.exp(theta[p, :d]), "fixed"
             ) + WhiteKernel(math.exp(2 * theta[p, -1]), "fixed")
             xs, ys = (
-                (x, y[:, p])
-                if centres is None
-                else (centres[p], _nearest_targets(x, y[:, p], centres[p]))
+                (x, y[:, p]) if centres is None else (centres[p], _nearest_targets(x, y[:, p], centres[p]))
             )
-            self.models.append(
-                GaussianProcessRegressor(kern, alpha=1e-10, optimizer=None).fit(xs, ys)
-            )
+            self.models.append(GaussianProcessRegressor(kern, alpha=1e-10, optimizer=None).fit(xs, ys))
         self.loop_rows = loop_rows
 
     def _eval(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -175,9 +171,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             if isinstance(filt, PF):
                 prng = np.random.default_rng(1)
                 pb = filt.initial(belief, prng)
-                t[label] = time_steps(
-                    lambda f=filt, pb=pb, prng=prng: f.step(pb, u, z, valid, prng), r
-                )
+                t[label] = time_steps(lambda f=filt, pb=pb, prng=prng: f.step(pb, u, z, valid, prng), r)
             else:
                 t[label] = time_steps(lambda f=filt: f.step(belief, u, z, valid), r)
         speed = t["base"] / t["ours"]

@@ -97,9 +97,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     for threads in (1, 2):
         with threadpool_limits(threads):
             for k in (1, 25):
-                lat[(threads, k)] = best_time(
-                    lambda k=k: gp.predict(q[:k]), 50 if args.quick else 200
-                )
+                lat[(threads, k)] = best_time(lambda k=k: gp.predict(q[:k]), 50 if args.quick else 200)
             lat[(threads, "mean1")] = best_time(lambda: gp.predict(q[:1], return_var=False), 200)
     best1 = min(lat[(1, 1)], lat[(2, 1)])
     best25 = min(lat[(1, 25)], lat[(2, 25)])

@@ -54,9 +54,7 @@ def models(toy) -> dict[str, object]:
         "exact": fit_exact(x, y, restarts=2, max_iter=80, rng=rng),
         "sparse": fit_sparse(x, y, n_pseudo=15, max_iter=80, rng=rng),
         "hetero": fit_hetero(x, y, iterations=1, restarts=1, max_iter=50, rng=rng),
-        "enhanced": fit_enhanced(
-            x, y, lambda q: 0.3 * q[:, ::-1], fit_exact, restarts=1, max_iter=50
-        ),
+        "enhanced": fit_enhanced(x, y, lambda q: 0.3 * q[:, ::-1], fit_exact, restarts=1, max_iter=50),
     }
 
 
@@ -160,9 +158,7 @@ def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy) -> None:
 def test_sparse_fit_is_close_to_exact_on_smooth_data(models, toy) -> None:
     q = np.random.default_rng(8).uniform(-2.5, 2.5, (200, 2))
     truth = np.stack([np.sin(q[:, 0]) + 0.3 * q[:, 1], np.cos(q[:, 1]) * q[:, 0]], axis=1)
-    rmse = {
-        k: np.sqrt(np.mean((models[k].predict(q).mean - truth) ** 2)) for k in ("exact", "sparse")
-    }
+    rmse = {k: np.sqrt(np.mean((models[k].predict(q).mean - truth) ** 2)) for k in ("exact", "sparse")}
     assert rmse["sparse"] < 2.0 * rmse["exact"] + 0.02
 
 

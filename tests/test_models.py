@@ -63,9 +63,7 @@ def test_ode_complex_step_jacobian_matches_finite_differences(flight) -> None:
     x, u = flight["x"][50:53], flight["u"][50:53]
     jac = ode.predict(x, u, jac=True).jac
     h = 1e-6
-    fd = np.stack(
-        [(ode.change(x + h * e, u) - ode.change(x - h * e, u)) / (2 * h) for e in np.eye(12)], -1
-    )
+    fd = np.stack([(ode.change(x + h * e, u) - ode.change(x - h * e, u)) / (2 * h) for e in np.eye(12)], -1)
     np.testing.assert_allclose(jac, fd, atol=1e-6)
 
 

@@ -5,6 +5,7 @@ Subcommands
 collect   fly a pilot for N minutes in the simulator and record the flight (.npz)
 train     fit parametric, GP, EGP, heteroscedastic and sparse models from flights
 track     run a filter with a model kind over a recorded flight; RMS, log-likelihood, plot
+serve     run the estimator as a zenoh network service (same as python -m estimator_service)
 """
 
 from __future__ import annotations
@@ -44,9 +45,7 @@ def _train(args: argparse.Namespace) -> int:
     from agents.training import TrainSettings, train_models
 
     flights = [load_flight(p) for p in args.flights]
-    settings = TrainSettings(
-        args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations
-    )
+    settings = TrainSettings(args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     bars: dict[str, tqdm] = {}
 
@@ -69,9 +68,7 @@ def _train(args: argparse.Namespace) -> int:
         on_progress=progress,
     )
     print(
-        json.dumps(
-            {"models": str(args.out), "train_seconds": {k: round(v, 1) for k, v in timings.items()}}
-        )
+        json.dumps({"models": str(args.out), "train_seconds": {k: round(v, 1) for k, v in timings.items()}})
     )
     return 0
 
@@ -85,9 +82,7 @@ def _track(args: argparse.Namespace) -> int:
     flight = load_flight(args.flight)
     opts = {"n_particles": args.particles} if args.filter == "pf" else {}
     filt = build_filter(args.filter, args.model, args.models, **opts)
-    with tqdm(
-        total=len(flight) - 1, desc=f"track {args.filter}/{args.model}", disable=args.quiet
-    ) as bar:
+    with tqdm(total=len(flight) - 1, desc=f"track {args.filter}/{args.model}", disable=args.quiet) as bar:
         result = track_flight(
             filt,
             flight,
@@ -98,9 +93,7 @@ def _track(args: argparse.Namespace) -> int:
     for name, value in scores.items():
         print(f"{name:>20s}: {value:.4g}")
     if args.plot:
-        plot_tracking(
-            result, Path(args.plot), title=f"GP-BayesFilter {args.filter.upper()} / {args.model}"
-        )
+        plot_tracking(result, Path(args.plot), title=f"GP-BayesFilter {args.filter.upper()} / {args.model}")
         print(f"wrote {args.plot}")
     print(json.dumps({k: round(v, 4) for k, v in scores.items()}))
     return 0
@@ -111,11 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="gpbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = p.add_subparsers(dest="command", required=True)
+    sub.add_parser("serve", help="run the estimator service (see 'gpbf serve --help')", add_help=False)
 
     c = sub.add_parser("collect", help="fly a pilot and record a flight")
-    c.add_argument(
-        "--minutes", type=float, default=5.0, help="simulated flight time in minutes (default 5)"
-    )
+    c.add_argument("--minutes", type=float, default=5.0, help="simulated flight time in minutes (default 5)")
     c.add_argument(
         "--pilot",
         choices=("scripted", "random"),
@@ -124,9 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--seed", type=int, default=0, help="seed of the env and the pilot")
     c.add_argument("--env", default="gpbf_env/Blimp-v0", help="Gymnasium env id")
-    c.add_argument(
-        "--out", type=Path, default=Path("out/flights/flight.npz"), help="output .npz file"
-    )
+    c.add_argument("--out", type=Path, default=Path("out/flights/flight.npz"), help="output .npz file")
     c.set_defaults(func=_collect)
 
     t = sub.add_parser("train", help="fit every model kind from recorded flights")
@@ -143,22 +133,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=900,
         help="training points per GP after subsampling (paper: 900)",
     )
-    t.add_argument(
-        "--pseudo", type=int, default=50, help="pseudo-inputs of the sparse GPs (paper: 50)"
-    )
+    t.add_argument("--pseudo", type=int, default=50, help="pseudo-inputs of the sparse GPs (paper: 50)")
     t.add_argument("--restarts", type=int, default=2, help="optimiser restarts per exact GP output")
     t.add_argument("--max-iter", type=int, default=100, help="L-BFGS-B iterations per restart")
-    t.add_argument(
-        "--hetero-iterations", type=int, default=2, help="EM rounds of the heteroscedastic GPs"
-    )
+    t.add_argument("--hetero-iterations", type=int, default=2, help="EM rounds of the heteroscedastic GPs")
     t.add_argument("--seed", type=int, default=0, help="seed of the subsampling and restarts")
     t.set_defaults(func=_train)
 
     k = sub.add_parser("track", help="run a filter over a flight and score it")
     k.add_argument("flight", type=Path, help="flight .npz file")
-    k.add_argument(
-        "--models", type=Path, default=Path("out/models"), help="model folder from 'gpbf train'"
-    )
+    k.add_argument("--models", type=Path, default=Path("out/models"), help="model folder from 'gpbf train'")
     k.add_argument("--filter", choices=("ukf", "ekf", "pf"), default="ukf", help="Bayes filter")
     k.add_argument(
         "--model",
@@ -168,9 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     k.add_argument("--particles", type=int, default=2000, help="particles of the PF")
     k.add_argument("--seed", type=int, default=0, help="seed of the particle filter")
-    k.add_argument(
-        "--plot", type=Path, default=None, help="PNG of estimate vs truth with 3-sigma bands"
-    )
+    k.add_argument("--plot", type=Path, default=None, help="PNG of estimate vs truth with 3-sigma bands")
     k.set_defaults(func=_track)
 
     for s in (c, t, k):
@@ -179,6 +161,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["serve"]:  # the service has its own parser and lifecycle
+        from estimator_service.service.server import main as serve
+
+        return serve(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))

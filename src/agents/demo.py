@@ -120,9 +120,7 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     for cam in cfg.cameras:
         ax.plot(*cam.position[:2], "ks")
         ax.annotate(cam.name, cam.position[:2])
-    ax.set(
-        xlim=(0, cfg.room[0]), ylim=(0, cfg.room[1]), xlabel="x (m)", ylabel="y (m)", aspect="equal"
-    )
+    ax.set(xlim=(0, cfg.room[0]), ylim=(0, cfg.room[1]), xlabel="x (m)", ylabel="y (m)", aspect="equal")
     ax.set_title("top-down")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()

@@ -76,14 +76,7 @@ class WaypointPilot:
 
 def _near_wall(state: NDArray[np.float64], margin: float = MARGIN) -> bool:
     x, y, z = state[:3]
-    return (
-        x < margin
-        or x > ROOM[0] - margin
-        or y < margin
-        or y > ROOM[1] - margin
-        or z < 0.9
-        or z > 3.1
-    )
+    return x < margin or x > ROOM[0] - margin or y < margin or y > ROOM[1] - margin or z < 0.9 or z > 3.1
 
 
 MANOEUVRES = (
@@ -168,9 +161,7 @@ class RandomExcitationPilot:
 
     def act(self, state: NDArray[np.float64]) -> Action:
         if _near_wall(state, MARGIN - 0.3):
-            return WaypointPilot(max_forward=0.6).act(
-                state, np.array([ROOM[0] / 2, ROOM[1] / 2, 2.0])
-            )
+            return WaypointPilot(max_forward=0.6).act(state, np.array([ROOM[0] / 2, ROOM[1] / 2, 2.0]))
         if self._left <= 0:
             self._action = self.rng.uniform(-1, 1, 3).astype(np.float32)
             self._left = int(self.rng.integers(2, 12))

@@ -44,9 +44,7 @@ def plot_tracking(r: TrackResult, path: Path, dt: float = 0.25, title: str = "")
     for ax, (i, label) in zip(axes, PANELS, strict=True):
         sd = np.sqrt(r.cov[:, i, i])
         est = r.truth[:, i] + r.error[:, i]  # unwrapped next to the truth
-        ax.fill_between(
-            t, est - 3 * sd, est + 3 * sd, color="tab:blue", alpha=0.25, lw=0, label="3 sigma"
-        )
+        ax.fill_between(t, est - 3 * sd, est + 3 * sd, color="tab:blue", alpha=0.25, lw=0, label="3 sigma")
         ax.plot(t, r.truth[:, i], "k", lw=1.0, label="truth")
         ax.plot(t, est, "r--", lw=1.0, label="estimate")
         ax.set_ylabel(label)

@@ -128,9 +128,7 @@ def collect_flight(
     driver = make_pilot(pilot, rng)
     obs, info = env.reset(seed=seed)
     steps = round(seconds / env.unwrapped.config.dt)
-    rows: dict[str, list[Any]] = {
-        k: [] for k in ("t", "state", "control", "ellipses", "valid", "episode")
-    }
+    rows: dict[str, list[Any]] = {k: [] for k in ("t", "state", "control", "ellipses", "valid", "episode")}
     episode = 0
     for k in range(steps + 1):
         action = policy(obs, info["state"]) if policy else driver.act(info["state"])
@@ -160,9 +158,7 @@ def collect_flight(
         "pilot": "agent" if policy else pilot,
         "env_id": env_id,
         "dt": cfg.dt,
-        "env_config": {
-            k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("params", "weights")
-        },
+        "env_config": {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("params", "weights")},
         "params": cfg.params.to_dict(),
         "cameras": camera_metadata(env),
     }

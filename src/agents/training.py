@@ -114,9 +114,7 @@ def _fitter(kind: str, s: TrainSettings, rng: np.random.Generator, cb) -> Callab
         return lambda x, y: fit_hetero(
             x, y, iterations=s.hetero_iterations, restarts=1, max_iter=s.max_iter, **common
         )
-    return lambda x, y: fit_sparse(
-        x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=2 * s.max_iter, **common
-    )
+    return lambda x, y: fit_sparse(x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=2 * s.max_iter, **common)
 
 
 def train_models(

@@ -76,9 +76,7 @@ def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel
         if missing:
             raise ValueError(f"parametric model file {os.fspath(path)!r} lacks {sorted(missing)}")
         mass, tail, dt, sub = d["ode_fixed"]
-        ode = BlimpODE(
-            d["ode_params"], d["ode_noise"], float(mass), float(tail), float(dt), int(sub)
-        )
+        ode = BlimpODE(d["ode_params"], d["ode_noise"], float(mass), float(tail), float(dt), int(sub))
         cams = tuple(
             PinholeCalibration(p, r, float(f), (float(c[0]), float(c[1])))
             for p, r, f, c in zip(
@@ -92,9 +90,7 @@ def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel
         return ode, CameraModel(cams, d["cam_axes"], d["cam_noise"])
 
 
-def load_models(
-    model_dir: str | os.PathLike[str], kind: str
-) -> tuple[PredictionModel, ObservationModel]:
+def load_models(model_dir: str | os.PathLike[str], kind: str) -> tuple[PredictionModel, ObservationModel]:
     """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`)."""
     if kind not in MODEL_KINDS:
         raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
@@ -113,19 +109,11 @@ def _observation(folder: Path, kind: str, cam: CameraModel) -> ObservationModel:
     """One file for all cameras, or one ``observation_<kind>_cam<k>.npz`` per camera."""
     single = folder / f"observation_{kind}.npz"
     if single.exists():
-        return GPObservationModel(
-            load_gp(single, **({"mean_function": cam.mean} if kind == "egp" else {}))
-        )
+        return GPObservationModel(load_gp(single, **({"mean_function": cam.mean} if kind == "egp" else {})))
     parts = []
     for k in range(len(cam.cameras)):
-        extra = (
-            {"mean_function": lambda x, k=k: cam.mean(x)[:, 5 * k : 5 * k + 5]}
-            if kind == "egp"
-            else {}
-        )
-        parts.append(
-            GPObservationModel(load_gp(folder / f"observation_{kind}_cam{k}.npz", **extra))
-        )
+        extra = {"mean_function": lambda x, k=k: cam.mean(x)[:, 5 * k : 5 * k + 5]} if kind == "egp" else {}
+        parts.append(GPObservationModel(load_gp(folder / f"observation_{kind}_cam{k}.npz", **extra)))
     return StackedObservationModel(tuple(parts))
 
 
@@ -143,8 +131,6 @@ def make_filter(
     return cls(prediction, observation, **options)  # type: ignore[arg-type]
 
 
-def build_filter(
-    filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], **options: object
-):
+def build_filter(filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], **options: object):
     """``make_filter(filter_kind, *load_models(model_dir, model_kind), **options)``."""
     return make_filter(filter_kind, *load_models(model_dir, model_kind), **options)

@@ -83,9 +83,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self.observation_space = self.config.observation_space()
         self._params: BlimpParams = self.config.params
-        self._coeffs: Coeffs = make_coeffs(
-            [self._params], self.config.dt, self.config.substeps, math
-        )
+        self._coeffs: Coeffs = make_coeffs([self._params], self.config.dt, self.config.substeps, math)
         self._state = [0.0] * 12
         self._motors: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._wind = [0.0, 0.0, 0.0]
@@ -129,9 +127,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         obs = self._observe(rng.standard_normal(self.config.noise_size - 3))
         return obs, self._info(None)
 
-    def step(
-        self, action: NDArray[np.float32]
-    ) -> tuple[ObsType, float, bool, bool, dict[str, Any]]:
+    def step(self, action: NDArray[np.float32]) -> tuple[ObsType, float, bool, bool, dict[str, Any]]:
         a = check_action(action)
         cfg = self.config
         cmd = cfg.map_action(a[None, :], self._params)[0]
@@ -190,9 +186,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     def _observe(self, noise: NDArray[np.float64]) -> ObsType:
         frames = self.config.frame_schedule(np.array([self._step]))
-        ell, valid = observe(
-            self.config, np.array([self._state]), frames, noise[None, :], [self.np_random]
-        )
+        ell, valid = observe(self.config, np.array([self._state]), frames, noise[None, :], [self.np_random])
         self._last_obs = {"ellipses": ell[0], "valid": valid[0]}
         return {"ellipses": ell[0].copy(), "valid": valid[0].copy()}
 

@@ -193,9 +193,7 @@ def _ellipse_params(centre: FloatArray, shape: FloatArray) -> FloatArray:
     lam2 = np.maximum(half - rad, 0.0)
     angle = 0.5 * np.arctan2(2.0 * b, a - c)
     angle = np.where(angle <= -math.pi / 2, angle + math.pi, angle)
-    return np.stack(
-        [centre[..., 0], centre[..., 1], 2 * np.sqrt(lam1), 2 * np.sqrt(lam2), angle], axis=-1
-    )
+    return np.stack([centre[..., 0], centre[..., 1], 2 * np.sqrt(lam1), 2 * np.sqrt(lam2), angle], axis=-1)
 
 
 def ellipse_from_points(points: FloatArray, shape_factor: float = 2.0) -> FloatArray:

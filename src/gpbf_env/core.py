@@ -84,9 +84,7 @@ class WorldConfig:
         if not 0 < self.camera_rate_hz <= 1.0 / self.dt + 1e-9:
             raise ValueError(f"camera_rate_hz must be in (0, 1/dt], got {self.camera_rate_hz!r}")
         if self.camera_mode not in ("closed_form", "rendered"):
-            raise ValueError(
-                f"camera_mode must be 'closed_form' or 'rendered', got {self.camera_mode!r}"
-            )
+            raise ValueError(f"camera_mode must be 'closed_form' or 'rendered', got {self.camera_mode!r}")
         if self.pixel_noise < 0:
             raise ValueError(f"pixel_noise must be >= 0, got {self.pixel_noise!r}")
         steps = 1.0 / (self.camera_rate_hz * self.dt)
@@ -121,9 +119,7 @@ class WorldConfig:
         w, h = self.cameras[0].size
         c = self.n_cameras
         low = np.tile(np.array([0, 0, 0, 0, -math.pi / 2], dtype=np.float32), (c, 1))
-        high = np.tile(
-            np.array([w - 1, h - 1, 2 * w, 2 * w, math.pi / 2], dtype=np.float32), (c, 1)
-        )
+        high = np.tile(np.array([w - 1, h - 1, 2 * w, 2 * w, math.pi / 2], dtype=np.float32), (c, 1))
         return low, high
 
     def observation_space(self) -> spaces.Dict:

@@ -127,14 +127,10 @@ class BlimpParams:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-dict view (tuples become lists), e.g. for recording metadata."""
-        return {
-            k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()
-        }
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
 
-def randomize_params(
-    base: BlimpParams, rng: np.random.Generator, scale: float = 0.1
-) -> BlimpParams:
+def randomize_params(base: BlimpParams, rng: np.random.Generator, scale: float = 0.1) -> BlimpParams:
     """Domain randomisation: scale every positive coefficient by ``U(1 - scale, 1 + scale)``.
 
     Geometry (envelope size) and gravity are kept; buoyancy is perturbed around neutral.

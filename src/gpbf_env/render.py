@@ -29,9 +29,7 @@ def draw_ellipse(
     _plot_points(img, x * scale, y * scale, color)
 
 
-def _plot_points(
-    img: NDArray[np.uint8], x: NDArray[Any], y: NDArray[Any], color: NDArray[np.uint8]
-) -> None:
+def _plot_points(img: NDArray[np.uint8], x: NDArray[Any], y: NDArray[Any], color: NDArray[np.uint8]) -> None:
     xi, yi = np.rint(x).astype(int), np.rint(y).astype(int)
     keep = (xi >= 0) & (xi < img.shape[1]) & (yi >= 0) & (yi < img.shape[0])
     img[yi[keep], xi[keep]] = color

@@ -108,9 +108,7 @@ class EKF(_GaussianFilter):
         out = self.prediction.predict(belief.mean[None], u, jac=True)
         g = np.eye(belief.mean.size) + out.jac[0]
         cov = g @ belief.cov @ g.T + np.diag(out.var[0])
-        return GaussianBelief(
-            self._wrap.state_value(belief.mean + out.mean[0]), 0.5 * (cov + cov.T)
-        )
+        return GaussianBelief(self._wrap.state_value(belief.mean + out.mean[0]), 0.5 * (cov + cov.T))
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None
@@ -126,9 +124,7 @@ class EKF(_GaussianFilter):
         return _kalman_update(prior, r, s, prior.cov @ h.T, self._wrap, h, r_noise)
 
 
-def sigma_weights(
-    n: int, alpha: float, beta: float, kappa: float
-) -> tuple[FloatArray, FloatArray, float]:
+def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[FloatArray, FloatArray, float]:
     """Unscented-transform weights: mean weights ``(2n+1,)``, covariance weights, ``gamma``."""
     lam = alpha * alpha * (n + kappa) - n
     wm = np.full(2 * n + 1, 0.5 / (n + lam))
@@ -176,11 +172,7 @@ class UKF(_GaussianFilter):
         x = self.sigma_points(belief)
         out = self.prediction.predict(x, u, var=self.noise == "sigma")
         xk = x + out.mean
-        q = (
-            out.var.mean(axis=0)
-            if self.noise == "sigma"
-            else self.prediction.predict(x[:1], u).var[0]
-        )
+        q = out.var.mean(axis=0) if self.noise == "sigma" else self.prediction.predict(x[:1], u).var[0]
         mean = self._wrap.mean(xk, wm, self._wrap.state)
         dev = self._wrap.state_diff(xk - mean)
         cov = (dev * wc[:, None]).T @ dev + np.diag(q)

@@ -69,15 +69,11 @@ class PF:
         dev = self._wrap.state_diff(belief.particles - mean)
         return GaussianBelief(mean, make_pd((dev * w[:, None]).T @ dev)[0])
 
-    def predict(
-        self, belief: ParticleBelief, u: FloatArray, rng: np.random.Generator
-    ) -> ParticleBelief:
+    def predict(self, belief: ParticleBelief, u: FloatArray, rng: np.random.Generator) -> ParticleBelief:
         """Step 4: ``x_m ~ x_m + N(GP_mu([x_m, u]), GP_Sigma([x_m, u]))``, all particles at once."""
         out = self.prediction.predict(belief.particles, u)
         noise = rng.standard_normal(belief.particles.shape) * np.sqrt(out.var)
-        return ParticleBelief(
-            self._wrap.state_value(belief.particles + out.mean + noise), belief.log_weights
-        )
+        return ParticleBelief(self._wrap.state_value(belief.particles + out.mean + noise), belief.log_weights)
 
     def update(
         self, prior: ParticleBelief, z: FloatArray, valid: NDArray[np.bool_] | None,
@@ -106,9 +102,7 @@ class PF:
 
     def _nis(self, w: FloatArray, zs: FloatArray, var: FloatArray, z: FloatArray, idx) -> float:
         """NIS of ``z`` under the particles' predicted observation distribution."""
-        zhat = (
-            self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
-        )
+        zhat = self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
         dz = self._wrap.obs_diff(zs - zhat, idx)
         s = (dz * w[:, None]).T @ dz + np.diag(w @ var)
         try:

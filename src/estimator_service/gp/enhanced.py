@@ -22,9 +22,7 @@ def numeric_jacobian(f: MeanFunction, x: FloatArray, rel_step: float = 1e-6) -> 
     m, d = x.shape
     h = rel_step * np.maximum(1.0, np.abs(x))  # (M, d)
     eye = np.eye(d)
-    pts = np.concatenate(
-        [x[:, None, :] + h[:, :, None] * eye, x[:, None, :] - h[:, :, None] * eye], axis=1
-    )
+    pts = np.concatenate([x[:, None, :] + h[:, :, None] * eye, x[:, None, :] - h[:, :, None] * eye], axis=1)
     vals = np.asarray(f(pts.reshape(-1, d))).reshape(m, 2 * d, -1)
     return ((vals[:, :d] - vals[:, d:]) / (2.0 * h[:, :, None])).transpose(0, 2, 1)
 
@@ -70,11 +68,7 @@ class EnhancedGP:
         mean = res.mean + np.asarray(self.mean_function(xq)).reshape(res.mean.shape)
         jac = None
         if return_jac:
-            fj = (
-                self.mean_jacobian(xq)
-                if self.mean_jacobian
-                else numeric_jacobian(self.mean_function, xq)
-            )
+            fj = self.mean_jacobian(xq) if self.mean_jacobian else numeric_jacobian(self.mean_function, xq)
             jac = res.jac + fj
         return GPPrediction(mean, res.var, jac)
 

@@ -179,9 +179,7 @@ class ExactGP:
             l, _ = robust_cholesky(k)
             chol_t[p] = l.T
             alpha[p] = chol_solve(l, y[:, p])
-        return cls(
-            x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile
-        )
+        return cls(x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile)
 
     @property
     def input_dim(self) -> int:
@@ -204,12 +202,10 @@ class ExactGP:
         chunk = max(1, _CHUNK_BYTES // (8 * p_out * n))
         if xs.shape[0] > chunk:
             parts = [
-                self.latent(xs[i : i + chunk], return_var, return_jac)
-                for i in range(0, xs.shape[0], chunk)
+                self.latent(xs[i : i + chunk], return_var, return_jac) for i in range(0, xs.shape[0], chunk)
             ]
             return tuple(
-                None if parts[0][j] is None else np.concatenate([q[j] for q in parts])
-                for j in range(3)
+                None if parts[0][j] is None else np.concatenate([q[j] for q in parts]) for j in range(3)
             )  # type: ignore[return-value]
         ks, mean, jac = self._kernel(xs, return_jac)
         sf2 = np.exp(2.0 * self.theta[:, -2])

@@ -132,9 +132,7 @@ def _from_arrays(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> GP
         p, m, d = z.shape
         _expect(theta.shape == (p, d + 2), where, f"theta {theta.shape} vs pseudo_inputs {z.shape}")
         _expect(beta.shape == (p, m), where, f"beta {beta.shape}, expected {(p, m)}")
-        _expect(
-            lm.shape == lb.shape == (p, m, m), where, f"Cholesky factors {lm.shape}, {lb.shape}"
-        )
+        _expect(lm.shape == lb.shape == (p, m, m), where, f"Cholesky factors {lm.shape}, {lb.shape}")
         xs, ys = _scalers(data, prefix, where, d, p)
         return SparseGP(xs, ys, theta, z, beta, lm, lb)
     if kind == "hetero":
@@ -146,12 +144,8 @@ def _from_arrays(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> GP
         return HeteroscedasticGP(main, noise)
     if kind == "enhanced":
         if mean_fn is None:
-            raise ModelFileError(
-                f"{where}: an enhanced GP needs its parametric mean_function to load"
-            )
-        return EnhancedGP(
-            mean_fn, _from_arrays(data, f"{prefix}residual/", where, None, None), mean_jac
-        )
+            raise ModelFileError(f"{where}: an enhanced GP needs its parametric mean_function to load")
+        return EnhancedGP(mean_fn, _from_arrays(data, f"{prefix}residual/", where, None, None), mean_jac)
     raise ModelFileError(f"{where}: unknown model kind {kind!r}")
 
 
@@ -180,7 +174,5 @@ def load_gp(
         raise ModelFileError(f"{where}: no '__format__' entry (not a gpbf GP file?)")
     version = int(data["__format__"])
     if version != FORMAT_VERSION:
-        raise ModelFileError(
-            f"{where}: format version {version}, this build reads {FORMAT_VERSION}"
-        )
+        raise ModelFileError(f"{where}: format version {version}, this build reads {FORMAT_VERSION}")
     return _from_arrays(data, "", where, mean_function, mean_jacobian)

@@ -90,9 +90,7 @@ class CrossKernel:
         b_aug_t = np.ascontiguousarray(np.concatenate([b, ones, top], axis=-1).transpose(0, 2, 1))
         return cls(ell, np.log(sf2), b_aug_t, weights[:, :, None].copy(), weights[:, :, None] * c)
 
-    def __call__(
-        self, xs: FloatArray, return_jac: bool
-    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+    def __call__(self, xs: FloatArray, return_jac: bool) -> tuple[FloatArray, FloatArray, FloatArray | None]:
         """Kernel block, mean and Jacobian at standardised queries ``xs (M, d)``.
 
         Returns
@@ -112,8 +110,6 @@ class CrossKernel:
         mean = (ks @ self.weights)[:, :, 0]  # (P, M)
         jac = None
         if return_jac:
-            jac = (ks @ self.weighted_centres - xs[None] * mean[:, :, None]) / (self.ell**2)[
-                :, None, :
-            ]
+            jac = (ks @ self.weighted_centres - xs[None] * mean[:, :, None]) / (self.ell**2)[:, None, :]
             jac = jac.transpose(1, 0, 2)
         return ks, mean.T, jac

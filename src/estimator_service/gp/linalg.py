@@ -57,9 +57,7 @@ def tri_solve(l_fortran: FloatArray, b: FloatArray, overwrite_b: bool = False) -
     """
     if b.shape[1] == 1:  # one query (the EKF): trsv streams L once, about twice as fast
         return blas.dtrsv(l_fortran, b[:, 0], lower=1, overwrite_x=int(overwrite_b))[:, None]
-    return sla.solve_triangular(
-        l_fortran, b, lower=True, check_finite=False, overwrite_b=overwrite_b
-    )
+    return sla.solve_triangular(l_fortran, b, lower=True, check_finite=False, overwrite_b=overwrite_b)
 
 
 def chol_solve(l: FloatArray, b: FloatArray) -> FloatArray:

@@ -52,9 +52,7 @@ def _pieces(theta: FloatArray, z: FloatArray, x: FloatArray) -> dict[str, FloatA
             "kmn": kmn, "lm": lm, "v": v, "lam": lam, "vl": vl, "lb": lb}  # fmt: skip
 
 
-def sparse_nll(
-    params: FloatArray, x: FloatArray, y: FloatArray, m: int
-) -> tuple[float, FloatArray]:
+def sparse_nll(params: FloatArray, x: FloatArray, y: FloatArray, m: int) -> tuple[float, FloatArray]:
     """FITC negative log marginal likelihood and its gradient.
 
     Parameters
@@ -129,9 +127,7 @@ class SparseGP:
     def __post_init__(self) -> None:
         for arr in (self.theta, self.pseudo_inputs, self.beta, self.chol_mm_t, self.chol_b_t):
             arr.flags.writeable = False
-        object.__setattr__(
-            self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta)
-        )
+        object.__setattr__(self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta))
 
     @classmethod
     def from_params(

@@ -50,9 +50,7 @@ class PredictionModel(Protocol):
     state_dim: int
     control_dim: int
 
-    def predict(
-        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
-    ) -> ModelOutput:
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         """Change ``x_k - x_{k-1}`` for states ``x (M, n)`` and controls ``u (k,)`` or ``(M, k)``.
 
         ``var=False`` may skip the variance (returned as zeros) where that saves work.
@@ -92,16 +90,10 @@ class LinearGaussianPrediction:
         object.__setattr__(self, "state_dim", self.a.shape[0])
         object.__setattr__(self, "control_dim", self.b.shape[1])
 
-    def predict(
-        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
-    ) -> ModelOutput:
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         uu = controls_for(u, x.shape[0])
         change = x @ (self.a - np.eye(self.state_dim)).T + uu @ self.b.T
-        j = (
-            np.broadcast_to(self.a - np.eye(self.state_dim), (x.shape[0], *self.a.shape))
-            if jac
-            else None
-        )
+        j = np.broadcast_to(self.a - np.eye(self.state_dim), (x.shape[0], *self.a.shape)) if jac else None
         return ModelOutput(change, np.broadcast_to(self.q, change.shape), j)
 
 

@@ -43,9 +43,7 @@ def _wrap(a):
     return a - 2 * np.pi * np.floor((a.real + np.pi) / (2 * np.pi))
 
 
-def _derivative(
-    s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float, float]
-) -> FloatArray:
+def _derivative(s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float, float]) -> FloatArray:
     """``ds/dt`` for states ``s (12, N)`` and controls ``u (3, N)`` (real or complex)."""
     m2, m3, j1, j_lat, d1, d2, d3, e1, e2, e3, lift, right, k_t, k_mu, k_tl, l_f = th
     m1, l_t = fixed
@@ -142,9 +140,7 @@ class BlimpODE:
         d[:, 3:6] = _wrap(d[:, 3:6])
         return d
 
-    def predict(
-        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
-    ) -> ModelOutput:
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         uu = controls_for(u, x.shape[0])
         mean = self.change(x, uu)
         j = self._complex_step_jacobian(x, uu) if jac else None
@@ -157,9 +153,7 @@ class BlimpODE:
         xc[:, np.arange(n), np.arange(n)] += 1j * h
         uc = np.repeat(u[:, None, :], n, axis=1).reshape(m * n, -1).astype(np.complex128)
         p = self.params.astype(np.complex128)
-        nxt = integrate(
-            xc.reshape(m * n, n), uc, p, (self.mass, self.tail_arm), self.dt, self.substeps
-        )
+        nxt = integrate(xc.reshape(m * n, n), uc, p, (self.mass, self.tail_arm), self.dt, self.substeps)
         jac = nxt.imag.reshape(m, n, n) / h  # [row, input j, output i]
         return jac.transpose(0, 2, 1) - np.eye(n)
 

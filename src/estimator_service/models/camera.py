@@ -128,9 +128,7 @@ class CameraModel:
     def _jacobian(self, x: FloatArray, step: float = 1e-6) -> FloatArray:
         """Central differences ``(M, 5 C, n)`` in one batched call; angle differences wrapped."""
         m, n = x.shape
-        pts = np.concatenate(
-            [x[:, None, :] + step * np.eye(n), x[:, None, :] - step * np.eye(n)], axis=1
-        )
+        pts = np.concatenate([x[:, None, :] + step * np.eye(n), x[:, None, :] - step * np.eye(n)], axis=1)
         f = self.mean(pts.reshape(-1, n)).reshape(m, 2, n, -1)
         d = f[:, 0] - f[:, 1]
         periods = self.obs_periods

@@ -25,14 +25,10 @@ class GPPredictionModel:
 
     def __post_init__(self) -> None:
         if self.gp.output_dim != self.state_dim:
-            raise ValueError(
-                f"prediction GP has {self.gp.output_dim} outputs, state has {self.state_dim}"
-            )
+            raise ValueError(f"prediction GP has {self.gp.output_dim} outputs, state has {self.state_dim}")
         object.__setattr__(self, "control_dim", self.gp.input_dim - self.state_dim)
 
-    def predict(
-        self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True
-    ) -> ModelOutput:
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         inp = np.concatenate([x, controls_for(u, x.shape[0])], axis=1)
         p = self.gp.predict(inp, return_var=var, return_jac=jac)
         v = p.var if p.var is not None else np.zeros_like(p.mean)

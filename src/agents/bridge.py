@@ -1,0 +1,173 @@
+"""Environment-side bridge to the zenoh estimator service.
+
+:class:`EstimatorClient` talks to one blimp's session: ``reset`` it, then either
+``step`` in lock-step (a zenoh query per env step: control + camera frames in, belief out)
+or stream (``publish_control`` / ``publish_camera``; beliefs arrive on a subscriber and are
+read with ``next_belief``). :func:`env_frames` turns a ``gpbf_env`` observation into frames.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from estimator_service.service.protocol import PROTOCOL_VERSION, decode, decode_belief, encode
+from estimator_service.service.server import LIVELINESS_PREFIX, zenoh_config
+
+__all__ = ["EstimatorClient", "ServiceError", "env_frames", "open_session", "services"]
+
+
+class ServiceError(RuntimeError):
+    """The service answered with an error, or did not answer."""
+
+
+def open_session(connect: Sequence[str] = ("tcp/127.0.0.1:7447",), config_file=None) -> zenoh.Session:
+    """A zenoh peer that connects to the service's endpoint(s); no listening, no scouting."""
+    return zenoh.open(zenoh_config(listen=(), connect=tuple(connect), file=config_file))
+
+
+def services(session: zenoh.Session, timeout: float = 2.0) -> list[str]:
+    """Ids of the estimator services currently alive (liveliness tokens)."""
+    replies = session.liveliness().get(f"{LIVELINESS_PREFIX}/*", timeout=timeout)
+    return sorted(str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None)
+
+
+def env_frames(obs: dict[str, np.ndarray]) -> list[list[Any]]:
+    """``[[camera, [cx, cy, w, h, angle]], ...]`` for the cameras marked valid."""
+    return [[int(k), [float(v) for v in obs["ellipses"][k]]] for k in np.flatnonzero(obs["valid"])]
+
+
+class EstimatorClient:
+    """One blimp's view of the service."""
+
+    def __init__(self, session: zenoh.Session, blimp: str, timeout: float = 10.0) -> None:
+        self.session, self.blimp, self.timeout = session, blimp, timeout
+        self._seq = 0
+        self._beliefs: queue.Queue = queue.Queue()
+        self._errors: queue.Queue = queue.Queue()
+        self._sub = session.declare_subscriber(
+            f"gpbf/{blimp}/belief", lambda s: self._beliefs.put(s.payload.to_bytes())
+        )
+        self._err = session.declare_subscriber(
+            f"gpbf/{blimp}/error", lambda s: self._errors.put(s.payload.to_bytes())
+        )
+        self._pubs: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def _next_seq(self) -> int:
+        with self._lock:
+            self._seq += 1
+            return self._seq
+
+    def query(
+        self, kind: str, message: dict[str, Any] | None = None, raw: bytes | None = None
+    ) -> dict[str, Any]:
+        """Send a query (``step``, ``reset``, ``status``) and decode its single reply."""
+        payload = raw if raw is not None else (encode(message) if message is not None else None)
+        replies = list(self.session.get(f"gpbf/{self.blimp}/{kind}", payload=payload, timeout=self.timeout))
+        if not replies:
+            raise ServiceError(f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s")
+        r = replies[0]
+        if r.ok is None:
+            raw_err = r.err.payload.to_bytes()
+            try:
+                text = decode(raw_err).get("error", "unknown error")
+            except ValueError:
+                text = raw_err.decode("utf-8", "replace")  # zenoh's own errors, e.g. Timeout
+            raise ServiceError(f"{kind} for blimp {self.blimp!r}: {text}")
+        body = r.ok.payload.to_bytes()
+        return decode_belief(body) if kind in ("step", "reset") else decode(body)
+
+    def reset(
+        self,
+        mean: np.ndarray,
+        std: np.ndarray | None = None,
+        cov: np.ndarray | None = None,
+        *,
+        t: float = 0.0,
+        filter: str | None = None,
+        model: str | None = None,
+        seed: int = 0,
+    ) -> dict[str, Any]:
+        """(Re)start the blimp's session at ``N(mean, cov or diag(std^2))``, time ``t``."""
+        msg: dict[str, Any] = {
+            "v": PROTOCOL_VERSION,
+            "seq": self._next_seq(),
+            "t": float(t),
+            "mean": [float(x) for x in mean],
+            "seed": seed,
+        }
+        if cov is not None:
+            msg["cov"] = [float(x) for x in np.ravel(cov)]
+        else:
+            msg["std"] = [float(x) for x in std]
+        if filter:
+            msg["filter"] = filter
+        if model:
+            msg["model"] = model
+        return self.query("reset", msg)
+
+    def step(self, u: np.ndarray, frames: list[list[Any]], t: float) -> dict[str, Any]:
+        """Lock-step: predict with ``u`` to time ``t``, update with ``frames``; the new belief."""
+        msg = {
+            "v": PROTOCOL_VERSION,
+            "seq": self._next_seq(),
+            "t": float(t),
+            "u": [float(x) for x in u],
+            "frames": frames,
+        }
+        return self.query("step", msg)
+
+    def status(self) -> dict[str, Any]:
+        return self.query("status")
+
+    def _put(self, key: str, payload: bytes) -> None:
+        pub = self._pubs.get(key)
+        if pub is None:
+            pub = self._pubs[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        pub.put(payload)
+
+    def publish_control(self, u: np.ndarray, t: float) -> None:
+        msg = {"v": PROTOCOL_VERSION, "seq": self._next_seq(), "t": float(t), "u": [float(x) for x in u]}
+        self._put(f"gpbf/{self.blimp}/control", encode(msg))
+
+    def publish_camera(self, camera: int, ellipse: Sequence[float] | None, t: float) -> None:
+        msg = {
+            "v": PROTOCOL_VERSION,
+            "seq": self._next_seq(),
+            "t": float(t),
+            "ellipse": None if ellipse is None else [float(x) for x in ellipse],
+        }
+        self._put(f"gpbf/{self.blimp}/camera/{camera}", encode(msg))
+
+    def publish_raw(self, kind: str, payload: bytes) -> None:
+        """Send arbitrary bytes on an input key (for tests of the service's validation)."""
+        self._put(f"gpbf/{self.blimp}/{kind}", payload)
+
+    def next_belief(self, timeout: float | None = None) -> dict[str, Any]:
+        """The next streamed belief (blocks up to ``timeout``)."""
+        try:
+            return decode_belief(self._beliefs.get(timeout=timeout or self.timeout))
+        except queue.Empty:
+            raise ServiceError(f"no belief for blimp {self.blimp!r} within the timeout") from None
+
+    def errors(self, wait: float = 0.0) -> list[dict[str, Any]]:
+        """Error messages received so far (after waiting ``wait`` seconds)."""
+        if wait:
+            time.sleep(wait)
+        out = []
+        while not self._errors.empty():
+            out.append(decode(self._errors.get_nowait()))
+        return out
+
+    def close(self) -> None:
+        for d in (self._sub, self._err, *self._pubs.values()):
+            d.undeclare()

@@ -1,0 +1,269 @@
+"""One blimp's estimator session: its belief, its input queue and its worker thread.
+
+Zenoh callbacks only enqueue; the worker decodes, validates and filters, so filtering
+never runs in a zenoh thread. A message that fails validation, arrives late (older than
+the session's time) or makes the filter fail is rejected and counted, and the belief
+stays as it was.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from estimator_service.filters import PF, GaussianBelief, StepInfo
+from estimator_service.service.protocol import (
+    PROTOCOL_VERSION,
+    ProtocolError,
+    decode,
+    encode,
+    encode_belief,
+    parse_camera,
+    parse_control,
+    parse_reset,
+    parse_step,
+)
+
+__all__ = ["Session", "SessionSettings"]
+
+QUEUE_CAP = 100_000
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """Shared by all sessions of a service."""
+
+    dt: float = 0.25
+    n_cameras: int = 2
+    prior_mean: tuple[float, ...] = (5.0, 3.0, 2.0) + (0.0,) * 9
+    prior_std: tuple[float, ...] = (3.0, 2.0, 1.5, 0.3, 0.3, math.pi, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5)
+
+
+@dataclass
+class Session:
+    """State and worker of one blimp.
+
+    ``make_filter(filter_name, model_name)`` returns a (shared, immutable) filter;
+    ``publish(kind, payload)`` sends ``belief`` or ``error`` messages.
+    """
+
+    blimp: str
+    filter_name: str
+    model_name: str
+    settings: SessionSettings
+    make_filter: Callable[[str, str], Any]
+    publish: Callable[[str, bytes], None]
+    model_version: str = ""
+    seed: int = 0
+    steps: int = 0
+    rejected: int = 0
+    late: int = 0
+    t: float | None = None
+    _queue: queue.Queue = field(default_factory=lambda: queue.Queue(QUEUE_CAP))
+    _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
+    _controls: list = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._filter = self.make_filter(self.filter_name, self.model_name)
+        prior = GaussianBelief(
+            np.array(self.settings.prior_mean), np.diag(np.square(self.settings.prior_std))
+        )
+        self._install(prior, self.seed)
+        self._thread = threading.Thread(target=self._run, name=f"session-{self.blimp}", daemon=True)
+        self._thread.start()
+
+    # -- called from zenoh callbacks: enqueue only --------------------------------------------
+    def submit(self, kind: str, payload: bytes, query: Any = None, extra: Any = None) -> None:
+        try:
+            self._queue.put_nowait((kind, payload, query, extra))
+        except queue.Full:
+            self.rejected += 1
+            if query is not None:
+                query.reply_err(encode({"v": PROTOCOL_VERSION, "error": "session queue full"}))
+
+    def stop(self) -> None:
+        self._queue.put(None)
+        self._thread.join(timeout=5)
+
+    # -- worker ----------------------------------------------------------------------------------
+    def _run(self) -> None:
+        while (job := self._queue.get()) is not None:
+            kind, payload, query, extra = job
+            try:
+                reply = self._handle(kind, payload, extra)
+                if query is not None:
+                    query.reply(query.key_expr, reply)
+            except ProtocolError as exc:
+                self._reject(str(exc), kind, query)
+            except Exception as exc:  # a filter failure must not kill the session
+                self._reject(f"{type(exc).__name__}: {exc}", kind, query)
+            finally:
+                if query is not None:
+                    query.drop()
+
+    def _reject(self, text: str, kind: str, query: Any) -> None:
+        self.rejected += 1
+        msg = encode({"v": PROTOCOL_VERSION, "blimp": self.blimp, "input": kind, "error": text})
+        self.publish("error", msg)
+        if query is not None:
+            query.reply_err(msg)
+
+    def _handle(self, kind: str, payload: bytes, extra: Any) -> bytes | None:
+        if kind == "status":
+            return self._status()
+        msg = decode(payload)
+        if kind == "reset":
+            return self._reset(parse_reset(msg))
+        if kind == "step":
+            return self._step(parse_step(msg, self.settings.n_cameras))
+        if kind == "control":
+            c = parse_control(msg)
+            self._check_time(c.t)
+            self._controls.append((c.t, c.u))
+            self._controls.sort(key=lambda tc: tc[0])
+            return None
+        if kind == "camera":
+            return self._camera(parse_camera(msg, extra, self.settings.n_cameras))
+        raise ProtocolError(f"unknown input {kind!r}")
+
+    def _check_time(self, t: float) -> None:
+        if self.t is not None and t < self.t - 1e-9:
+            self.late += 1
+            raise ProtocolError(
+                f"field 't': {t} is older than the session time {self.t} (late or out of order)"
+            )
+
+    # -- filtering ---------------------------------------------------------------------------------
+    def _install(self, belief: GaussianBelief, seed: int) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._belief = self._filter.initial(belief, self._rng) if isinstance(self._filter, PF) else belief
+
+    def _gaussian(self) -> GaussianBelief:
+        return self._filter.gaussian(self._belief) if isinstance(self._filter, PF) else self._belief
+
+    def _predict(self, belief, u):
+        if isinstance(self._filter, PF):
+            return self._filter.predict(belief, u, self._rng)
+        return self._filter.predict(belief, u)
+
+    def _update(self, prior, z, valid) -> tuple[Any, StepInfo]:
+        if not valid.any():
+            return prior, StepInfo()
+        if isinstance(self._filter, PF):
+            return self._filter.update(prior, z, valid, self._rng)
+        return self._filter.update(prior, z, valid)
+
+    def _frames(self, frames: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        z = np.zeros(5 * self.settings.n_cameras)
+        valid = np.zeros(z.size, dtype=bool)
+        for k, ell in frames.items():
+            z[5 * k : 5 * k + 5], valid[5 * k : 5 * k + 5] = ell, True
+        return z, valid
+
+    def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
+        """Adopt the new belief (only after everything succeeded) and encode it."""
+        if isinstance(self._filter, PF):
+            g = self._filter.gaussian(belief)
+        else:
+            g = belief
+        if not (np.all(np.isfinite(g.mean)) and np.all(np.isfinite(g.cov))):
+            raise ProtocolError("filter produced a non-finite belief; input rejected")
+        self._belief, self.t = belief, t
+        self.steps += 1
+        ms = (time.perf_counter() - t0) * 1e3
+        self._timings.append(ms)
+        out = encode_belief(
+            self.blimp,
+            seq,
+            t,
+            g.mean,
+            g.cov,
+            self.filter_name,
+            self.model_name,
+            info.nis,
+            info.dof,
+            info.diverged,
+            ms,
+        )
+        self.publish("belief", out)
+        return out
+
+    def _step(self, s) -> bytes:
+        t0 = time.perf_counter()
+        if self.t is not None and s.t <= self.t:
+            self.late += 1
+            raise ProtocolError(f"field 't': step time {s.t} is not after the session time {self.t}")
+        z, valid = self._frames(s.frames)
+        belief, info = self._update(self._predict(self._belief, s.u), z, valid)
+        return self._commit(belief, info, s.seq, s.t, t0)
+
+    def _camera(self, c) -> bytes:
+        t0 = time.perf_counter()
+        self._check_time(c.t)
+        belief = self._belief
+        n = 0 if self.t is None else round((c.t - self.t) / self.settings.dt)
+        for i in range(n):  # predict to the frame's time with the controls then in force
+            belief = self._predict(belief, self._control_at(self.t + i * self.settings.dt))
+        z, valid = self._frames({} if c.ellipse is None else {c.camera: c.ellipse})
+        belief, info = self._update(belief, z, valid)
+        return self._commit(belief, info, c.seq, c.t, t0)
+
+    def _control_at(self, t: float) -> np.ndarray:
+        """The latest control at or before ``t``; older ones are forgotten."""
+        past = [c for c in self._controls if c[0] <= t + 1e-9]
+        self._controls = past[-1:] + [c for c in self._controls if c[0] > t + 1e-9]
+        return past[-1][1] if past else np.zeros(3)
+
+    def _reset(self, r) -> bytes:
+        if r.filter or r.model:
+            self.filter_name, self.model_name = (
+                r.filter or self.filter_name,
+                r.model or self.model_name,
+            )
+            self._filter = self.make_filter(self.filter_name, self.model_name)
+        self._install(GaussianBelief(r.mean, r.cov), r.seed)
+        self.t, self.steps, self._controls = r.t, 0, []
+        g = self._gaussian()
+        return encode_belief(
+            self.blimp,
+            r.seq,
+            r.t,
+            g.mean,
+            g.cov,
+            self.filter_name,
+            self.model_name,
+            math.nan,
+            0,
+            False,
+            0.0,
+        )
+
+    def _status(self) -> bytes:
+        ms = np.array(self._timings) if self._timings else np.zeros(1)
+        return encode(
+            {
+                "v": PROTOCOL_VERSION,
+                "blimp": self.blimp,
+                "filter": self.filter_name,
+                "model": self.model_name,
+                "model_version": self.model_version,
+                "steps": self.steps,
+                "rejected": self.rejected,
+                "late": self.late,
+                "t": self.t,
+                "queue": self._queue.qsize(),
+                "timings": {
+                    "count": len(self._timings),
+                    "step_ms_p50": float(np.median(ms)),
+                    "step_ms_p99": float(np.percentile(ms, 99)),
+                },
+            }
+        )
