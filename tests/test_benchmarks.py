@@ -12,6 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 EXPECTED = {
+    "bench_service.py": {"rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz"},
     "bench_filters.py": {
         "ekf_ms", "ukf_ms", "pf_exact_ms", "pf_sparse_ms",
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",

@@ -1,0 +1,208 @@
+"""Estimator service over zenoh loopback: lock-step round trips and capacity.
+
+Paper-sized synthetic models (prediction GP n = 900, 15 inputs, 12 outputs; observation
+GP n = 900, 12 inputs, 10 outputs; sparse variants with m = 50) are written to a temporary
+model folder; ``gpbf serve`` runs as a separate process.
+
+1. Lock-step round trip p50/p99 for GP-EKF and GP-UKF vs the in-process filter step in the
+   same run; overhead = p50 difference (target <= 0.5 ms).
+2. Blimps at 4 Hz: N clients each send one GP-EKF step every 250 ms (asynchronous
+   queries, staggered); the largest N whose p99 latency stays under 50 ms (target >= 200),
+   for the sparse GP (``blimps_at_4hz``) and the exact GP.
+
+The last output line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import bench_filters as bf
+
+from agents.bridge import EstimatorClient, open_session
+from estimator_service.factory import build_filter, save_parametric
+from estimator_service.filters import GaussianBelief
+from estimator_service.gp import save_gp
+from estimator_service.models.blimp import DEFAULT_PARAMS, BlimpODE
+from estimator_service.models.camera import CameraModel, PinholeCalibration
+from estimator_service.service.protocol import encode
+
+
+def write_models(folder: Path) -> None:
+    exact, sparse, *_ = bf.build(np.random.default_rng(0))
+    for kind, (p, o) in (("gp", exact), ("sparse", sparse)):
+        save_gp(p, folder / f"prediction_{kind}.npz")
+        save_gp(o, folder / f"observation_{kind}.npz")
+    cams = tuple(
+        PinholeCalibration(np.array([0.0, 0.0, 3.9]), np.eye(3), 380.0, (319.5, 239.5)) for _ in range(2)
+    )
+    save_parametric(
+        BlimpODE(DEFAULT_PARAMS, np.ones(12)),
+        CameraModel(cams, np.array([0.85, 0.32]), np.ones(10)),
+        folder / "parametric.npz",
+    )
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_service(models: Path, port: int, model: str) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "estimator_service",
+            "--models",
+            str(models),
+            "--model",
+            model,
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert "ready" in proc.stdout.readline()
+    return proc
+
+
+def round_trips(client, models: Path, filt: str, n: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    c = EstimatorClient(client, f"rtt-{filt}")
+    mean = rng.normal(size=12) * 0.5
+    c.reset(mean, np.full(12, 0.1), t=0.0, filter=filt, model="gp")
+    local = build_filter(filt, "gp", models)
+    belief = GaussianBelief(mean, np.eye(12) * 0.01)
+    rtt, loc = [], []
+    for k in range(n):
+        u, z = rng.normal(size=3), rng.normal(size=10) * 0.3
+        frames = [[0, z[:5].tolist()], [1, z[5:].tolist()]]
+        t0 = time.perf_counter()
+        c.step(u, frames, 0.25 * (k + 1))
+        rtt.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        belief, _ = local.step(belief, u, z, np.ones(10, bool))
+        loc.append(time.perf_counter() - t0)
+    return np.array(rtt[5:]) * 1e3, np.array(loc[5:]) * 1e3
+
+
+def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> float:
+    """p99 latency (ms) of ``n_blimps`` each stepping at 4 Hz for ``seconds``."""
+    rng = np.random.default_rng(2)
+    clients = [EstimatorClient(session, f"{tag}-{n_blimps}-{i}") for i in range(n_blimps)]
+    for c in clients:
+        c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0)
+    lat: list[float] = []
+    lock = threading.Lock()
+    pending = threading.Semaphore(0)
+    period, ticks = 0.25, int(seconds / 0.25)
+    start = time.perf_counter()
+    sent = 0
+    for tick in range(ticks):
+        for i, c in enumerate(clients):
+            due = start + tick * period + i * period / n_blimps
+            while (now := time.perf_counter()) < due:
+                time.sleep(min(due - now, 0.002))
+            msg = {
+                "v": 1,
+                "seq": tick + 1,
+                "t": 0.25 * (tick + 1),
+                "u": [0.1, 0.0, 0.0],
+                "frames": [[0, [300.0, 200.0, 60.0, 30.0, 0.1]]],
+            }
+            t0 = time.perf_counter()
+
+            def done(reply, t0=t0) -> None:
+                with lock:
+                    lat.append(time.perf_counter() - t0)
+                pending.release()
+
+            session.get(f"gpbf/{c.blimp}/step", done, payload=encode(msg), timeout=10.0)
+            sent += 1
+    for _ in range(sent):
+        pending.acquire(timeout=15)
+    for c in clients:
+        c.close()
+    return float(np.percentile(np.array(lat) * 1e3, 99)) if len(lat) == sent else float("inf")
+
+
+def capacity(models: Path, model: str, levels: list[int], seconds: float) -> tuple[int, dict[int, float]]:
+    port = free_port()
+    proc = start_service(models, port, model)
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    best, p99s = 0, {}
+    try:
+        for n in levels:
+            p99s[n] = capacity_run(session, n, seconds, model)
+            print(f"  {model:6s} GP-EKF, {n:4d} blimps at 4 Hz: p99 {p99s[n]:8.2f} ms")
+            if p99s[n] >= 50.0:
+                break
+            best = n
+    finally:
+        session.close()
+        proc.terminate()
+        proc.wait(timeout=20)
+    return best, p99s
+
+
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="short run (under a minute)")
+    args = parser.parse_args(argv)
+    n_rtt, seconds = (60, 2.0) if args.quick else (400, 6.0)
+    levels = [25, 50, 100, 200] if args.quick else [25, 50, 100, 150, 200, 250, 300, 400]
+    with tempfile.TemporaryDirectory() as tmp:
+        models = Path(tmp)
+        write_models(models)
+        port = free_port()
+        proc = start_service(models, port, "gp")
+        session = open_session([f"tcp/127.0.0.1:{port}"])
+        time.sleep(0.3)
+        res: dict[str, float] = {}
+        try:
+            for filt in ("ekf", "ukf"):
+                rtt, loc = round_trips(session, models, filt, n_rtt)
+                res[f"{filt}_rtt_p50_ms"], res[f"{filt}_rtt_p99_ms"] = np.median(rtt), np.percentile(rtt, 99)
+                res[f"{filt}_inprocess_p50_ms"] = np.median(loc)
+                res[f"{filt}_overhead_p50_ms"] = np.median(rtt) - np.median(loc)
+                p50, p99, lp50 = np.median(rtt), np.percentile(rtt, 99), np.median(loc)
+                print(f"GP-{filt.upper()}: round trip p50 {p50:.3f} ms, p99 {p99:.3f} ms;")
+                print(f"  in-process p50 {lp50:.3f} ms; overhead {p50 - lp50:.3f} ms")
+        finally:
+            session.close()
+            proc.terminate()
+            proc.wait(timeout=20)
+        best_sparse, _ = capacity(models, "sparse", levels, seconds)
+        best_exact, _ = capacity(models, "gp", [n for n in levels if n <= 100], seconds)
+    out = {
+        "rtt_p50_ms": round(res["ekf_rtt_p50_ms"], 3),
+        "rtt_p99_ms": round(res["ekf_rtt_p99_ms"], 3),
+        "overhead_p50_ms": round(res["ekf_overhead_p50_ms"], 3),
+        "ukf_rtt_p50_ms": round(res["ukf_rtt_p50_ms"], 3),
+        "ukf_rtt_p99_ms": round(res["ukf_rtt_p99_ms"], 3),
+        "ukf_overhead_p50_ms": round(res["ukf_overhead_p50_ms"], 3),
+        "blimps_at_4hz": best_sparse,
+        "blimps_at_4hz_model": "sparse",
+        "blimps_at_4hz_exact_gp": best_exact,
+    }
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
