@@ -1,14 +1,24 @@
-"""``make demo``: fly the blimp with a scripted pilot and plot what the cameras saw.
+"""``make demo``: the whole pipeline, end to end.
 
-Writes ``camera_views.png`` (both camera images rendered the slow way, with the
-closed-form ellipse and the ellipse found by background subtraction drawn on top) and
-``trajectory.png`` (3-D and top-down flight path with the waypoints).
+1. Fly the simulator for a minute and draw what the cameras saw: ``camera_views.png`` (both
+   camera images rendered the slow way, with the closed-form ellipse and the one found by
+   background subtraction) and ``trajectory.png``.
+2. Collect a training flight with the scripted pilot and train parametric and enhanced-GP
+   models (small defaults, progress bars).
+3. Start ``gpbf serve`` as a separate process, fly a new flight whose controls and camera
+   frames go to it through the zenoh bridge in lock-step, print the tracking error of the
+   GP filter vs the parametric filter, plot the beliefs (``service_tracking.png``) and shut
+   the service down cleanly.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
+import socket
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -19,9 +29,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Ellipse
+from tqdm import tqdm
 
 import gpbf_env
-from agents.pilots import WaypointPilot
+from agents.bridge import EstimatorClient, env_frames, open_session, services
+from agents.pilots import WaypointPilot, make_pilot
+from agents.recorder import collect_flight, save_flight
+from agents.tracking import GROUPS
+from agents.training import TrainSettings, train_models
 from gpbf_env.camera import euler_to_matrix, fit_ellipse_image, outline_ellipses, render_frame
 
 __all__ = ["fly", "main"]
@@ -127,25 +142,150 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     _save(fig, path)
 
 
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _start_service(models: Path, port: int) -> subprocess.Popen:
+    """``gpbf serve`` as a separate process; returns once it reports ready."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "agents.cli",
+        "serve",
+        "--models",
+        str(models),
+        "--filter",
+        "ukf",
+        "--model",
+        "egp",
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = proc.stdout.readline()
+    if "ready" not in line:
+        proc.kill()
+        raise RuntimeError(f"estimator service did not start: {line}{proc.stdout.read()}")
+    print(line.strip())
+    return proc
+
+
+def fly_through_service(
+    port: int, seconds: float, seed: int, kinds: tuple[str, ...]
+) -> dict[str, np.ndarray]:
+    """Fly a new flight; every step goes to one lock-step service session per model kind."""
+    env = gym.make("gpbf_env/Blimp-v0", max_episode_steps=10**9)
+    pilot = make_pilot("scripted", np.random.default_rng(seed))
+    obs, info = env.reset(seed=seed)
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    print(f"estimator services alive: {services(session)}")
+    clients = {k: EstimatorClient(session, f"demo-{k}") for k in kinds}
+    std = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
+    for k, c in clients.items():
+        c.reset(info["state"], std, t=info["t"], filter="ukf", model=k)
+    truth, est = [], {k: [] for k in kinds}
+    for _ in tqdm(range(round(seconds / 0.25)), desc="fly via zenoh service", unit="step"):
+        action = pilot.act(info["state"])
+        obs, _, terminated, _, info = env.step(action)
+        if terminated:
+            break
+        frames = env_frames(obs)
+        for k, c in clients.items():
+            b = c.step(action, frames, info["t"])
+            est[k].append((b["mean"], np.diag(b["cov"])))
+        truth.append(info["state"])
+    for c in clients.values():
+        c.close()
+    session.close()
+    return {
+        "truth": np.array(truth),
+        **{k: np.array([m for m, _ in v]) for k, v in est.items()},
+        **{f"{k}_var": np.array([v for _, v in e]) for k, e in est.items()},
+    }
+
+
+def rms_groups(err: np.ndarray) -> dict[str, float]:
+    err = err.copy()
+    err[:, 3:6] = (err[:, 3:6] + np.pi) % (2 * np.pi) - np.pi
+    return {name: float(np.sqrt(np.mean(err[:, s] ** 2)) * f) for name, (s, f) in GROUPS.items()}
+
+
+def plot_service_tracking(log: dict[str, np.ndarray], kinds: tuple[str, ...], path: Path) -> None:
+    t = np.arange(len(log["truth"])) * 0.25
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    for ax, (i, label) in zip(axes, ((0, "x (m)"), (1, "y (m)"), (5, "yaw (rad)")), strict=True):
+        ax.plot(t, log["truth"][:, i], "k", lw=1.2, label="truth")
+        for k, color in zip(kinds, ("tab:red", "tab:blue"), strict=False):
+            m, sd = log[k][:, i], np.sqrt(log[f"{k}_var"][:, i])
+            ax.plot(t, m, color=color, lw=0.9, ls="--", label=f"UKF / {k}")
+            ax.fill_between(t, m - 3 * sd, m + 3 * sd, color=color, alpha=0.15, lw=0)
+        ax.set_ylabel(label)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1].set_xlabel("time (s)")
+    fig.suptitle("beliefs from the zenoh estimator service (lock-step), 3-sigma bands")
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    parser.add_argument("--seconds", type=float, default=60.0, help="simulated flight time (s)")
+    parser.add_argument("--train-minutes", type=float, default=8.0, help="training flight (sim minutes)")
+    parser.add_argument("--fly-seconds", type=float, default=120.0, help="tracked flight (sim seconds)")
+    parser.add_argument("--points", type=int, default=400, help="GP training points (paper: 900)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    log = fly(args.seconds, args.seed)
+    # 1. the simulator and its cameras
+    log = fly(60.0, args.seed)
     views, traj = args.out / "camera_views.png", args.out / "trajectory.png"
     plot_camera_views(log["state"][len(log["state"]) // 2], views, args.seed)
     plot_trajectory(log, traj)
-    frac = log["valid"].mean(axis=0)
-    print(
-        f"flew {args.seconds:.0f} s: return {float(log['return']):.1f}, "
-        f"camera frames per step {np.round(frac, 2).tolist()}"
+    # 2. a training flight and the models
+    steps = round(args.train_minutes * 60 / 0.25)
+    with tqdm(total=steps, desc="collect training flight", unit="step") as bar:
+        flight = collect_flight(
+            args.train_minutes * 60, seed=args.seed, progress=lambda k: bar.update(k - bar.n)
+        )
+    save_flight(flight, args.out / "training_flight.npz")
+    models = args.out / "models"
+    bars: dict[str, tqdm] = {}
+
+    def progress(kind: str, p) -> None:
+        bar = bars.setdefault(kind, tqdm(desc=f"train {kind} models", unit="it"))
+        if p is None:
+            bar.close()
+        else:
+            bar.update(1)
+
+    settings = TrainSettings(n_points=args.points, n_pseudo=30, restarts=1, max_iter=40)
+    train_models(
+        [flight], models, kinds=("param", "egp"), settings=settings, seed=args.seed, on_progress=progress
     )
-    print(f"wrote {views}")
-    print(f"wrote {traj}")
-    return 0
+    # 3. the estimator as a separate process, fed through the bridge
+    port = _free_port()
+    proc = _start_service(models, port)
+    kinds = ("egp", "param")
+    try:
+        fl = fly_through_service(port, args.fly_seconds, args.seed + 1, kinds)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=30)
+    print(f"estimator service shut down cleanly (exit code {code}): {proc.stdout.read().strip()}")
+    scores = {k: rms_groups(fl[k] - fl["truth"]) for k in kinds}
+    print(f"tracking RMS over {len(fl['truth'])} steps (UKF):")
+    for name in GROUPS:
+        gp, par = scores["egp"][name], scores["param"][name]
+        gain = 100 * (1 - gp / par)
+        print(f"  {name:>20s}: GP (EGP) {gp:8.2f}   parametric {par:8.2f}   improvement {gain:5.1f}%")
+    plot = args.out / "service_tracking.png"
+    plot_service_tracking(fl, kinds, plot)
+    for p in (views, traj, plot):
+        print(f"wrote {p}")
+    return 0 if code == 0 else 1
 
 
 if __name__ == "__main__":
