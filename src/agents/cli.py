@@ -6,6 +6,8 @@ collect   fly a pilot for N minutes in the simulator and record the flight (.npz
 train     fit parametric, GP, EGP, heteroscedastic and sparse models from flights
 track     run a filter with a model kind over a recorded flight; RMS, log-likelihood, plot
 serve     run the estimator as a zenoh network service (same as python -m estimator_service)
+train-agent   train a PPO or SAC agent on a chosen observation variant (state, belief, ...)
+eval-agent    run a saved agent: return, task success, belief tracking error
 """
 
 from __future__ import annotations
@@ -26,8 +28,14 @@ def _collect(args: argparse.Namespace) -> int:
 
     steps = round(args.minutes * 60 / 0.25)
     with tqdm(total=steps, desc=f"collect ({args.pilot})", unit="step", disable=args.quiet) as bar:
+        policy = None
+        if args.agent is not None:
+            from agents.rl import AgentPolicy
+
+            policy = AgentPolicy(args.agent)
         flight = collect_flight(
             args.minutes * 60,
+            policy=policy,
             pilot=args.pilot,
             seed=args.seed,
             env_id=args.env,
@@ -99,6 +107,42 @@ def _track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_agent(args: argparse.Namespace) -> int:
+    from agents.rl import AgentSpec, evaluate_agent, train_agent
+
+    spec = AgentSpec(
+        args.algo,
+        args.obs,
+        args.task,
+        args.filter,
+        args.model,
+        str(args.models) if args.models else None,
+        args.seed,
+    )
+    path = train_agent(
+        spec,
+        args.timesteps,
+        args.out,
+        n_envs=args.n_envs,
+        eval_freq=args.eval_freq,
+        progress_bar=not args.quiet,
+    )
+    print(f"wrote {path} and {args.out / 'learning_curve.png'}")
+    print(json.dumps({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
+    return 0
+
+
+def _eval_agent(args: argparse.Namespace) -> int:
+    from agents.rl import evaluate_agent
+
+    with tqdm(total=args.episodes, desc="evaluate", unit="episode", disable=args.quiet) as bar:
+        result = evaluate_agent(
+            args.agent, episodes=args.episodes, seed=args.seed, on_episode=lambda k: bar.update(k - bar.n)
+        )
+    print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="gpbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -117,6 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="seed of the env and the pilot")
     c.add_argument("--env", default="gpbf_env/Blimp-v0", help="Gymnasium env id")
     c.add_argument("--out", type=Path, default=Path("out/flights/flight.npz"), help="output .npz file")
+    c.add_argument(
+        "--agent",
+        type=Path,
+        default=None,
+        help="fly a trained agent (model.zip from 'gpbf train-agent') instead of the pilot",
+    )
     c.set_defaults(func=_collect)
 
     t = sub.add_parser("train", help="fit every model kind from recorded flights")
@@ -155,7 +205,38 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--plot", type=Path, default=None, help="PNG of estimate vs truth with 3-sigma bands")
     k.set_defaults(func=_track)
 
-    for s in (c, t, k):
+    a = sub.add_parser("train-agent", help="train an SB3 agent on beliefs")
+    a.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
+    a.add_argument(
+        "--obs",
+        choices=("state", "belief", "belief-param", "ellipses"),
+        default="belief",
+        help="observation: true state, GP belief, parametric belief, or raw ellipses",
+    )
+    a.add_argument("--task", choices=("hover", "waypoint"), default="hover", help="flight task")
+    a.add_argument("--filter", choices=("ukf", "ekf", "pf"), default="ekf", help="filter of belief variants")
+    a.add_argument(
+        "--model",
+        choices=("gp", "egp", "hetgp", "sparse"),
+        default="gp",
+        help="GP model kind of the 'belief' variant",
+    )
+    a.add_argument("--models", type=Path, default=None, help="model folder (needed for belief variants)")
+    a.add_argument("--timesteps", type=int, default=50_000, help="training environment steps")
+    a.add_argument("--n-envs", type=int, default=1, help="parallel envs, each with its own filter")
+    a.add_argument("--eval-freq", type=int, default=5000, help="steps between evaluations")
+    a.add_argument("--eval-episodes", type=int, default=5, help="episodes of the final evaluation")
+    a.add_argument("--seed", type=int, default=0, help="seed of the agent and the envs")
+    a.add_argument("--out", type=Path, default=Path("out/agent"), help="output folder")
+    a.set_defaults(func=_train_agent)
+
+    e = sub.add_parser("eval-agent", help="evaluate a saved agent")
+    e.add_argument("agent", type=Path, help="model.zip (with agent.json beside it)")
+    e.add_argument("--episodes", type=int, default=10, help="evaluation episodes")
+    e.add_argument("--seed", type=int, default=1000, help="seed of the first episode")
+    e.set_defaults(func=_eval_agent)
+
+    for s in (c, t, k, a, e):
         s.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 

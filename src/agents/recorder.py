@@ -109,7 +109,7 @@ def collect_flight(
     seed: int = 0,
     env_id: str = "gpbf_env/Blimp-v0",
     env_kwargs: dict[str, Any] | None = None,
-    policy: Callable[[dict[str, Any], FloatArray], FloatArray] | None = None,
+    policy: Callable[[dict[str, Any], dict[str, Any]], FloatArray] | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> Flight:
     """Fly for ``seconds`` of sim time and record; episodes restart after a crash.
@@ -119,7 +119,9 @@ def collect_flight(
     pilot
         ``scripted`` or ``random`` (ignored when ``policy`` is given).
     policy
-        Optional ``policy(obs, state) -> action``, e.g. a trained agent.
+        Optional ``policy(obs, info) -> action`` (raw observation, env info), e.g. a
+        trained agent (:class:`agents.rl.AgentPolicy`); it is told of resets by
+        ``info["t"] == 0``.
     progress
         Called with the number of steps done after each step.
     """
@@ -131,7 +133,7 @@ def collect_flight(
     rows: dict[str, list[Any]] = {k: [] for k in ("t", "state", "control", "ellipses", "valid", "episode")}
     episode = 0
     for k in range(steps + 1):
-        action = policy(obs, info["state"]) if policy else driver.act(info["state"])
+        action = policy(obs, info) if policy else driver.act(info["state"])
         action = np.zeros(3) if k == steps else np.asarray(action, dtype=np.float64)
         for key, val in (
             ("t", info["t"]),

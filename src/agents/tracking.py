@@ -104,8 +104,15 @@ def track_flight(
         if on_step:
             on_step(k + 1)
     step_s = (time.perf_counter() - t0) / max(1, n - 1)
-    return TrackResult(np.array(means), np.array(covs), fl.state[1:n], np.array(nis),
-                       np.array(dof, dtype=np.int64), np.array(div), step_s)  # fmt: skip
+    return TrackResult(
+        np.array(means),
+        np.array(covs),
+        fl.state[1:n],
+        np.array(nis),
+        np.array(dof, dtype=np.int64),
+        np.array(div),
+        step_s,
+    )
 
 
 def score(r: TrackResult) -> dict[str, float]:
