@@ -1,0 +1,66 @@
+"""PPO training throughput on beliefs vs on the true state, in one run.
+
+Models come from a short scripted flight (``--quick``: 3 minutes, 300 GP points; full:
+10 minutes, 900 points, the paper's size). Throughput is environment steps per second of
+``PPO.learn`` (one env, in-process GP-EKF for the belief variant; target belief >= 0.5x
+state). The last output line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+
+from agents.recorder import collect_flight
+from agents.rl import AgentSpec, make_vec
+from agents.training import TrainSettings, train_models
+
+
+def throughput(spec: AgentSpec, steps: int) -> float:
+    from stable_baselines3 import PPO
+
+    venv = make_vec(spec, 1)
+    agent = PPO("MlpPolicy", venv, n_steps=256, batch_size=64, n_epochs=4, seed=0, device="cpu", verbose=0)
+    agent.learn(256)  # warm-up (first rollout, torch initialisation)
+    t0 = time.perf_counter()
+    agent.learn(steps, reset_num_timesteps=False)
+    rate = steps / (time.perf_counter() - t0)
+    venv.close()
+    return rate
+
+
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="short run (under a minute)")
+    args = parser.parse_args(argv)
+    minutes, points, steps = (3, 300, 1024) if args.quick else (10, 900, 4096)
+    with tempfile.TemporaryDirectory() as tmp:
+        flight = collect_flight(minutes * 60, seed=0)
+        settings = TrainSettings(n_points=points, n_pseudo=50, restarts=1, max_iter=20)
+        train_models([flight], tmp, kinds=["param", "gp", "sparse"], settings=settings)
+        rates = {
+            name: throughput(AgentSpec(variant=v, model=m, models=tmp), steps)
+            for name, v, m in (
+                ("state", "state", "gp"),
+                ("belief", "belief", "gp"),
+                ("belief_sparse", "belief", "sparse"),
+            )
+        }
+    for name, r in rates.items():
+        print(f"PPO on {name:14s}: {r:8.1f} env steps/s")
+    out = {
+        "state_steps_per_s": round(rates["state"], 1),
+        "belief_steps_per_s": round(rates["belief"], 1),
+        "belief_to_state_ratio": round(rates["belief"] / rates["state"], 3),
+        "belief_sparse_steps_per_s": round(rates["belief_sparse"], 1),
+        "belief_sparse_to_state_ratio": round(rates["belief_sparse"] / rates["state"], 3),
+        "gp_points": points,
+    }
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
