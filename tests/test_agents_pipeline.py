@@ -123,3 +123,35 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     assert scores["position_mm"] < 200 and np.isfinite(scores["mll"])
     assert png.stat().st_size > 10_000
     assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
+
+
+def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
+    from agents.reproduce import ReproduceSettings, reproduce, split_folds
+
+    s = ReproduceSettings(
+        minutes=1.5,
+        folds=2,
+        points=40,
+        pseudo=8,
+        max_iter=5,
+        track_seconds=20,
+        particles=50,
+        kinds=("param", "gp", "egp", "sparse"),
+        landmark=False,
+    )
+    res = reproduce(tmp_path, s, progress=False)
+    report = (tmp_path / "report.md").read_text()
+    for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 4", "orderings"):
+        assert heading in report
+    assert set(res["tracking"]) == {f"{f}/{k}" for f in ("ukf", "ekf", "pf") for k in s.kinds}
+    assert (tmp_path / "fig4_left_turns.png").exists()
+    train, test = split_folds(collect_flight(20, seed=0), 2)[1]
+    assert len(train.transition_rows()) == len(train) - 1 and len(test) == 40
+
+
+def test_landmark_experiment_tracks_with_all_filters() -> None:
+    from agents.landmark import run_landmark_experiment
+
+    res = run_landmark_experiment(n_test=1, steps=60, particles=100)
+    assert set(res) == {"GP-UKF (alpha=1e-3)", "GP-UKF (alpha=1)", "GP-EKF", "GP-PF"}
+    assert all(np.isfinite(v["position"]) and v["position"] < 2.0 for v in res.values())

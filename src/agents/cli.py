@@ -8,6 +8,7 @@ track     run a filter with a model kind over a recorded flight; RMS, log-likeli
 serve     run the estimator as a zenoh network service (same as python -m estimator_service)
 train-agent   train a PPO or SAC agent on a chosen observation variant (state, belief, ...)
 eval-agent    run a saved agent: return, task success, belief tracking error
+reproduce     the paper's experiments (Tables 5-10, Fig. 4, consistency) with a markdown report
 """
 
 from __future__ import annotations
@@ -143,6 +144,18 @@ def _eval_agent(args: argparse.Namespace) -> int:
     return 0
 
 
+def _reproduce(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from agents.reproduce import ReproduceSettings, reproduce
+
+    s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
+    s = replace(s, seed=args.seed)
+    reproduce(args.out, s, progress=not args.quiet)
+    print(f"wrote {args.out / 'report.md'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="gpbf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -236,7 +249,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=1000, help="seed of the first episode")
     e.set_defaults(func=_eval_agent)
 
-    for s in (c, t, k, a, e):
+    r = sub.add_parser("reproduce", help="run the paper's experiments and write a report")
+    r.add_argument(
+        "--out", type=Path, default=Path("out/reproduce"), help="output folder (report.md, figures)"
+    )
+    r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of under an hour")
+    r.add_argument("--seed", type=int, default=0, help="seed of the flight and the training")
+    r.set_defaults(func=_reproduce)
+
+    for s in (c, t, k, a, e, r):
         s.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 

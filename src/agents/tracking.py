@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from agents.recorder import Flight
-from estimator_service.filters import PF, GaussianBelief, StepInfo
+from estimator_service.filters import PF, GaussianBelief, StepInfo, make_pd
 
 __all__ = ["GROUPS", "TrackResult", "aggregate_rms", "score", "track_flight"]
 
@@ -124,7 +124,10 @@ def score(r: TrackResult) -> dict[str, float]:
     """
     e = r.error
     out = {name: float(np.sqrt(np.mean(e[:, s] ** 2)) * f) for name, (s, f) in GROUPS.items()}
-    ls = np.linalg.cholesky(r.cov)
+    try:
+        ls = np.linalg.cholesky(r.cov)
+    except np.linalg.LinAlgError:  # a collapsed particle cloud: factor each step robustly
+        ls = np.stack([make_pd(c)[1] for c in r.cov])
     w = np.linalg.solve(ls, e[:, :, None])[:, :, 0]
     nees = np.sum(w * w, axis=1)
     logdet = 2 * np.sum(np.log(np.diagonal(ls, axis1=1, axis2=2)), axis=1)

@@ -1,0 +1,185 @@
+"""``gpbf reproduce``: the paper's experiments (Sect. 6) on simulated flights.
+
+Tables 5/6 (one-step prediction and observation errors), Tables 7-9 (tracking with
+UKF/EKF/PF x Param/GP/EGP/hetGP/sparse: RMS improvement over the parametric filter, mean
+log-likelihood, time per step), Fig. 4 (no training data with the tail pushing left),
+Table 10 (the synthetic landmark robot) and filter consistency (NEES, NIS), with k-fold
+cross-validation over contiguous blocks of one long scripted flight.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+from tqdm import tqdm
+
+from agents.landmark import run_landmark_experiment
+from agents.recorder import Flight, collect_flight
+from agents.tracking import GROUPS, aggregate_rms, track_flight
+from agents.training import TrainSettings, prediction_data, train_models
+from estimator_service.factory import MODEL_KINDS, build_filter, load_models
+
+__all__ = ["ReproduceSettings", "reproduce", "split_folds"]
+
+
+@dataclass(frozen=True)
+class ReproduceSettings:
+    """Sizes of the experiments; :meth:`quick` is the few-minute version."""
+
+    minutes: float = 20.0
+    folds: int = 4
+    points: int = 900
+    pseudo: int = 50
+    max_iter: int = 60
+    track_seconds: float = 120.0
+    particles: int = 500
+    kinds: tuple[str, ...] = MODEL_KINDS
+    filters: tuple[str, ...] = ("ukf", "ekf", "pf")
+    landmark: bool = True
+    seed: int = 0
+
+    @classmethod
+    def quick(cls) -> ReproduceSettings:
+        return cls(
+            minutes=4.0, folds=2, points=150, pseudo=20, max_iter=15, track_seconds=40.0, particles=200
+        )
+
+
+def split_folds(flight: Flight, k: int) -> list[tuple[Flight, Flight]]:
+    """``k`` (train, test) pairs over contiguous blocks; blocks of the training set become
+    separate episodes so no transition spans a removed block."""
+    blocks = np.array_split(np.arange(len(flight)), k)
+    out = []
+    for i, test in enumerate(blocks):
+        train = np.concatenate([b for j, b in enumerate(blocks) if j != i])
+        tr = flight.select(train)
+        block_id = np.concatenate([np.full(len(b), j) for j, b in enumerate(blocks) if j != i])
+        tr = replace(tr, episode=tr.episode * k + block_id)
+        out.append((tr, flight.select(test)))
+    return out
+
+
+def _wrap(d: np.ndarray) -> np.ndarray:
+    d = d.copy()
+    d[:, 3:6] = (d[:, 3:6] + math.pi) % (2 * math.pi) - math.pi
+    return d
+
+
+def one_step_errors(folder: Path, test: Flight, kind: str) -> dict[str, float]:
+    """Table 5: RMS one-step prediction error per state group; Table 6: observation error."""
+    pred, obs = load_models(folder, kind)
+    inp, change = prediction_data([test])
+    err = _wrap(pred.predict(inp[:, :12], inp[:, 12:]).mean - change)
+    out = {g: float(np.sqrt(np.mean(err[:, s] ** 2)) * f) for g, (s, f) in GROUPS.items()}
+    z = obs.observe(test.state).mean.reshape(len(test), -1, 5)
+    e = z - test.ellipses
+    e[..., 4] = (e[..., 4] + math.pi / 2) % math.pi - math.pi / 2
+    v = test.valid
+    out["ellipse_position_px"] = float(np.sqrt(np.mean(np.sum(e[v][:, :2] ** 2, axis=1))))
+    out["ellipse_size_px"] = float(np.sqrt(np.mean(e[v][:, 2:4] ** 2)))
+    out["ellipse_angle_deg"] = float(np.degrees(np.sqrt(np.mean(e[v][:, 4] ** 2))))
+    return out
+
+
+def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: str) -> dict[str, float]:
+    """Tables 7-9 and consistency: scores averaged over test segments of ``track_seconds``."""
+    f = build_filter(filt, kind, folder, **({"n_particles": s.particles} if filt == "pf" else {}))
+    seg = round(s.track_seconds / 0.25)
+    rows = [slice(a, a + seg) for a in range(0, len(test) - seg + 1, seg)] or [slice(None)]
+    scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
+    out = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+    out["aggregate_rms"] = float(np.mean([aggregate_rms(sc) for sc in scores]))
+    out["steps"] = seg
+    return out
+
+
+def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
+    """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
+    from agents.plots import save_figure
+
+    reduced = out / "models_no_left_turns"
+    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    train_models(
+        [train],
+        reduced,
+        kinds=["param", "gp"],
+        settings=settings,
+        seed=s.seed,
+        exclude=lambda inp: inp[:, 14] > 0.3,
+    )
+    left = test.control[:-1, 2] > 0.3
+    res = {}
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for ax, (name, folder) in zip(
+        axes, (("full data", folder_full), ("no left turns", reduced)), strict=True
+    ):
+        r = track_flight(build_filter("ukf", "gp", folder), test)
+        t = np.arange(len(r.mean)) * 0.25
+        sd = np.sqrt(r.cov[:, 5, 5])
+        est = r.truth[:, 5] + r.error[:, 5]
+        ax.fill_between(t, -4, 4, where=left[: len(t)], color="0.85", lw=0)
+        ax.fill_between(t, est - 3 * sd, est + 3 * sd, color="tab:blue", alpha=0.3, lw=0)
+        ax.plot(t, r.truth[:, 5], "k", lw=1)
+        ax.plot(t, est, "r--", lw=1)
+        ax.set(ylabel="yaw (rad)", title=f"GP-UKF, {name} (shaded: tail pushing left)", ylim=(-3.5, 3.5))
+        inside = np.abs(r.error[:, 5]) <= 3 * sd
+        m = left[: len(t)]
+        res[f"{name}: yaw std in left turns (deg)"] = float(np.degrees(sd[m].mean())) if m.any() else math.nan
+        res[f"{name}: yaw std elsewhere (deg)"] = float(np.degrees(sd[~m].mean()))
+        res[f"{name}: truth within 3 sigma"] = float(inside.mean())
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    save_figure(fig, out / "fig4_left_turns.png")
+    return res
+
+
+def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
+    """Run everything and write ``report.md`` and figures into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    flight = collect_flight(s.minutes * 60, seed=s.seed)
+    folds = split_folds(flight, s.folds)
+    table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
+    track: dict[tuple[str, str], list] = {}
+    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    bar = tqdm(total=len(folds) * (1 + len(s.filters) * len(s.kinds)), desc="reproduce", disable=not progress)
+    for i, (train, test) in enumerate(folds):
+        folder = out / f"models_fold{i}"
+        train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
+        bar.update(1)
+        for kind in table5:
+            if kind in s.kinds:
+                table5[kind].append(one_step_errors(folder, test, kind))
+        for filt in s.filters:
+            for kind in s.kinds:
+                track.setdefault((filt, kind), []).append(tracking(folder, test, s, filt, kind))
+                bar.update(1)
+    bar.close()
+    results = {
+        "settings": asdict(s),
+        "table5_6": {k: _mean_sd(v) for k, v in table5.items() if v},
+        "tracking": {f"{f}/{k}": _mean_sd(v) for (f, k), v in track.items()},
+        "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
+        "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    from agents.report import write_report
+
+    write_report(out, results)
+    return results
+
+
+def _mean_sd(runs: list[dict[str, float]]) -> dict[str, list[float]]:
+    return {k: [float(np.mean([r[k] for r in runs])), float(np.std([r[k] for r in runs]))] for k in runs[0]}
+
+
+def nees_band(dof: int, steps: int) -> tuple[float, float]:
+    """95% band of the time-averaged NEES (or NIS) of a consistent filter."""
+    lo, hi = chi2.ppf([0.025, 0.975], dof * steps)
+    return float(lo / steps), float(hi / steps)
