@@ -128,6 +128,8 @@ def make_filter(
         raise ValueError(f"filter kind must be one of {FILTER_KINDS}, got {kind!r}")
     cls = {"ekf": EKF, "ukf": UKF, "pf": PF}[kind]
     options.setdefault("wrapping", blimp_wrapping(observation.obs_dim // 5))
+    if kind == "pf":  # a 12-D cloud collapses without regularised resampling (measured: RMS 75 -> 24)
+        options.setdefault("roughen", 1.0)
     return cls(prediction, observation, **options)  # type: ignore[arg-type]
 
 

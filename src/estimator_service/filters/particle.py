@@ -45,6 +45,10 @@ class PF:
         ``M`` (paper: up to thousands; default 2,000).
     resample_below
         Resample when ``ESS < resample_below * M`` (1.0 resamples every step, as Table 1).
+    roughen
+        Regularised resampling: after resampling, move particles by ``N(0, (roughen h)^2 C)``
+        with ``C`` the weighted particle covariance and ``h`` Silverman's bandwidth, so the
+        cloud does not collapse onto a few particles (0 = Table 1 as written).
     """
 
     prediction: PredictionModel
@@ -52,6 +56,7 @@ class PF:
     wrapping: Wrapping | None = None
     n_particles: int = 2000
     resample_below: float = 0.5
+    roughen: float = 0.0
     name: str = "PF"
 
     @property
@@ -97,8 +102,17 @@ class PF:
         resampled = ess < self.resample_below * self.n_particles
         if resampled:
             keep = systematic_resample(post.weights, rng)
-            post = ParticleBelief(post.particles[keep], np.full(keep.size, -math.log(keep.size)))
+            moved = post.particles[keep]
+            if self.roughen > 0:
+                moved = self._roughen(post, moved, rng)
+            post = ParticleBelief(moved, np.full(keep.size, -math.log(keep.size)))
         return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, resampled)
+
+    def _roughen(self, post: ParticleBelief, moved: FloatArray, rng: np.random.Generator) -> FloatArray:
+        m, n = moved.shape
+        h = self.roughen * (4.0 / (m * (n + 2))) ** (1.0 / (n + 4))
+        l = make_pd(self.gaussian(post).cov)[1]
+        return self._wrap.state_value(moved + h * rng.standard_normal(moved.shape) @ l.T)
 
     def _nis(self, w: FloatArray, zs: FloatArray, var: FloatArray, z: FloatArray, idx) -> float:
         """NIS of ``z`` under the particles' predicted observation distribution."""
