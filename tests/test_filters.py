@@ -246,3 +246,22 @@ def test_systematic_resampling_counts_follow_weights() -> None:
 def test_particle_belief_ess() -> None:
     b = ParticleBelief(np.zeros((4, 1)), np.log(np.array([0.25, 0.25, 0.25, 0.25])))
     assert b.ess == pytest.approx(4.0)
+
+
+def test_regularised_resampling_keeps_the_cloud_diverse_and_consistent() -> None:
+    rng = np.random.default_rng(0)
+    plain, rough = (
+        PF(PRED, OBS, n_particles=2000, resample_below=1.0),
+        PF(PRED, OBS, n_particles=2000, resample_below=1.0, roughen=1.0),
+    )
+    beliefs = {"plain": plain.initial(PRIOR, rng), "rough": rough.initial(PRIOR, rng)}
+    mean, cov = PRIOR.mean, PRIOR.cov
+    for u, z, valid in scenario(8, seed=2):
+        beliefs["plain"], _ = plain.step(beliefs["plain"], u, z, valid, rng)
+        beliefs["rough"], _ = rough.step(beliefs["rough"], u, z, valid, rng)
+        mean, cov = kalman(mean, cov, u, z, valid)
+    unique = {k: len(np.unique(b.particles[:, 0])) for k, b in beliefs.items()}
+    assert unique["rough"] == 2000 and unique["rough"] > unique["plain"]
+    g = rough.gaussian(beliefs["rough"])
+    assert np.all(np.abs(g.mean - mean) < 5 * np.sqrt(np.diag(cov)))
+    np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.5)
