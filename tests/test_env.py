@@ -175,7 +175,7 @@ def test_leaving_the_room_terminates() -> None:
         _, reward, terminated, _, info = env.step(np.array([1, 1, 0], dtype=np.float32))
         if terminated:
             break
-    assert terminated and info["crashed"] and reward < -20
+    assert terminated and info["crashed"] and reward < -18  # the crash penalty outweighs the alive bonus
 
 
 @pytest.mark.parametrize(

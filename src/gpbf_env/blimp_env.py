@@ -49,8 +49,9 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     ``info["t"]`` the sim time (s), ``info["frames"]`` the cameras that were due.
 
     ## Rewards
-    Dense: ``-distance - 0.3 |heading error| - 0.05 |a|^2`` per step (components in
-    ``info["reward_distance" | "reward_heading" | "reward_control"]``). Hover: distance to
+    Dense: ``1 - distance - 0.3 |heading error| - 0.05 |a|^2`` per step (components in
+    ``info["reward_alive" | "reward_distance" | "reward_heading" | "reward_control"]``; the
+    +1 for staying airborne makes crashing early never pay). Hover: distance to
     the goal and error to the goal yaw. Waypoint: distance to the current waypoint and
     heading error to its direction, +10 on reaching a waypoint. -20 on a crash.
 
@@ -144,7 +145,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
             a[None, :], cfg.weights,
         )  # fmt: skip
         crashed = bool(cfg.out_of_bounds(state[None, :3])[0])
-        reward = float(parts["distance"][0] + parts["heading"][0] + parts["control"][0])
+        reward = float(parts["alive"][0] + parts["distance"][0] + parts["heading"][0] + parts["control"][0])
         reached = bool(parts["reached"][0])
         done = crashed
         if cfg.task == "waypoint" and reached:
@@ -200,6 +201,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         }
         if parts is not None:
             info.update(
+                reward_alive=float(parts["alive"][0]),
                 reward_distance=float(parts["distance"][0]),
                 reward_heading=float(parts["heading"][0]),
                 reward_control=float(parts["control"][0]),

@@ -16,10 +16,13 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class RewardWeights:
-    """Weights of the dense reward ``-(d + w_h |heading err| + w_u |a|^2)``.
+    """Weights of the dense reward ``alive - (d + w_h |heading err| + w_u |a|^2)``.
 
     Attributes
     ----------
+    alive
+        Paid every step the blimp is still flying. With it, ending an episode early by
+        crashing never beats flying on (without it, agents learn to crash quickly).
     heading
         Per radian of heading error.
     control
@@ -32,6 +35,7 @@ class RewardWeights:
         Distance (m) at which a waypoint counts as reached, and hover counts as on target.
     """
 
+    alive: float = 1.0
     heading: float = 0.3
     control: float = 0.05
     reach_bonus: float = 10.0
@@ -80,7 +84,8 @@ def task_reward(
 
     Returns
     -------
-    dict with ``distance``, ``heading``, ``control`` (the negative dense terms, (N,)),
+    dict with ``alive`` (the per-step bonus), ``distance``, ``heading``, ``control`` (the
+    negative dense terms), all (N,),
     ``distance_m`` and ``reached`` (bool, within ``reach_radius``).
     """
     delta = goal[:, :3] - position
@@ -91,6 +96,7 @@ def task_reward(
         target_yaw = np.arctan2(delta[:, 1], delta[:, 0])
     heading_err = np.abs(_wrap(yaw - target_yaw))
     return {
+        "alive": np.full(dist.shape, weights.alive),
         "distance": -dist,
         "heading": -weights.heading * heading_err,
         "control": -weights.control * np.sum(action * action, axis=1),

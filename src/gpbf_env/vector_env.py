@@ -108,7 +108,7 @@ class BlimpVectorEnv(VectorEnv):
         goal = self._goals[np.arange(n), self._goal_index]
         parts = task_reward(cfg.task, pos, yaw, goal, a, cfg.weights)
         crashed = cfg.out_of_bounds(pos)
-        reward = parts["distance"] + parts["heading"] + parts["control"]
+        reward = parts["alive"] + parts["distance"] + parts["heading"] + parts["control"]
         terminated = crashed.copy()
         if cfg.task == "waypoint":
             reached = parts["reached"]
@@ -177,6 +177,7 @@ class BlimpVectorEnv(VectorEnv):
         }
         if parts is not None:
             info.update(
+                reward_alive=parts["alive"],
                 reward_distance=parts["distance"],
                 reward_heading=parts["heading"],
                 reward_control=parts["control"],
