@@ -177,8 +177,9 @@ def evaluate_agent(
                 n += 1
         returns.append(total)
         final = info.get("distance_m", math.inf)
+        crashed = bool(info.get("crashed"))
         success.append(
-            bool(terminated and not info.get("crashed")) if spec.task == "waypoint" else final < 0.5
+            bool(terminated and not crashed) if spec.task == "waypoint" else final < 0.5 and not crashed
         )
         if on_episode:
             on_episode(ep + 1)
