@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ from numpy.typing import NDArray
 
 import gpbf_env  # noqa: F401  (registers the env)
 from agents.pilots import make_pilot
+from estimator_service.gp.io import atomic_savez
 
 __all__ = ["FLIGHT_FORMAT_VERSION", "Flight", "collect_flight", "load_flight", "save_flight"]
 
@@ -180,24 +180,16 @@ def save_flight(flight: Flight, path: str | os.PathLike[str]) -> Path:
     """Write ``flight`` to ``path`` atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(
-                fh,
-                t=flight.t,
-                state=flight.state,
-                control=flight.control,
-                ellipses=flight.ellipses,
-                valid=flight.valid,
-                episode=flight.episode,
-                metadata=np.array(json.dumps(flight.metadata)),
-            )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_savez(
+        path,
+        t=flight.t,
+        state=flight.state,
+        control=flight.control,
+        ellipses=flight.ellipses,
+        valid=flight.valid,
+        episode=flight.episode,
+        metadata=np.array(json.dumps(flight.metadata)),
+    )
 
 
 def load_flight(path: str | os.PathLike[str]) -> Flight:

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from estimator_service.filters import EKF, PF, UKF, Wrapping
 from estimator_service.gp import load_gp
+from estimator_service.gp.io import atomic_savez
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.blimp import BlimpODE
 from estimator_service.models.camera import CameraModel, PinholeCalibration
@@ -62,11 +62,7 @@ def save_parametric(ode: BlimpODE, cam: CameraModel, path: str | os.PathLike[str
         "cam_principal": np.array([c.principal_point for c in cam.cameras]),
         "cam_axes": cam.semi_axes, "cam_noise": cam.noise_var,
     }  # fmt: skip
-    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent)
-    with os.fdopen(fd, "wb") as fh:
-        np.savez(fh, **arrays)
-    os.replace(tmp, path)
-    return path
+    return atomic_savez(path, **arrays)
 
 
 def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel]:

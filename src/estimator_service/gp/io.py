@@ -23,7 +23,7 @@ from estimator_service.gp.exact import ExactGP
 from estimator_service.gp.hetero import HeteroscedasticGP
 from estimator_service.gp.sparse import SparseGP
 
-__all__ = ["FORMAT_VERSION", "ModelFileError", "load_gp", "save_gp"]
+__all__ = ["FORMAT_VERSION", "ModelFileError", "atomic_savez", "load_gp", "save_gp"]
 
 FORMAT_VERSION = 1
 Arrays = dict[str, NDArray]
@@ -62,10 +62,9 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
     return out
 
 
-def save_gp(model: GPModel, path: str | os.PathLike[str]) -> Path:
-    """Write ``model`` to ``path`` (``.npz``) atomically; returns the path."""
+def atomic_savez(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
+    """``np.savez`` to a temporary file in the same folder, then rename: never half a file."""
     path = Path(path)
-    arrays = {"__format__": np.array(FORMAT_VERSION), **_to_arrays(model)}
     fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent if str(path.parent) else ".")
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -75,6 +74,11 @@ def save_gp(model: GPModel, path: str | os.PathLike[str]) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def save_gp(model: GPModel, path: str | os.PathLike[str]) -> Path:
+    """Write ``model`` to ``path`` (``.npz``) atomically; returns the path."""
+    return atomic_savez(path, __format__=np.array(FORMAT_VERSION), **_to_arrays(model))
 
 
 def _get(data: Arrays, key: str, ndim: int, where: str) -> NDArray:
