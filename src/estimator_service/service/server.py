@@ -195,11 +195,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="JSON5 zenoh config (client/router mode, other endpoints); overrides --listen/--connect",
     )
     p.add_argument("--particles", type=int, default=2000, help="particles of PF sessions")
+    p.add_argument("--blas-threads", type=int, default=0, help="BLAS threads (0: library default)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.blas_threads > 0:  # per-step linear algebra is small; threads only contend with zenoh's
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(args.blas_threads)
     cfg = ServiceConfig(
         args.models,
         args.filter,
