@@ -25,7 +25,7 @@ import zenoh
 
 from estimator_service.factory import load_models, make_filter
 from estimator_service.service.protocol import PROTOCOL_VERSION, encode
-from estimator_service.service.session import Session, SessionSettings
+from estimator_service.service.session import Session, SessionSettings, WorkerPool
 
 __all__ = ["EstimatorService", "ServiceConfig", "main", "zenoh_config"]
 
@@ -45,6 +45,7 @@ class ServiceConfig:
     connect: tuple[str, ...] = ()
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
+    workers: int = 2
     session: SessionSettings = field(default_factory=SessionSettings)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
@@ -80,6 +81,7 @@ class EstimatorService:
         self._sessions: dict[str, Session] = {}
         self._lock = threading.RLock()  # a new session builds its filter under the lock
         self._version = _model_version(config.model_dir)
+        self._pool = WorkerPool(config.workers)
         self._build_filter(config.filter, config.model)  # fail fast on missing model files
         self.zenoh = zenoh.open(zenoh_config(config.listen, config.connect, config.zenoh_config_file))
         self._pubs: dict[str, Any] = {}
@@ -123,6 +125,7 @@ class EstimatorService:
                     self._build_filter,
                     lambda kind, p, b=blimp: self._publish(b, kind, p),
                     self._version,
+                    pool=self._pool,
                 )
                 self._sessions[blimp] = s
             return s
@@ -154,13 +157,11 @@ class EstimatorService:
         session.submit(kind, payload, query)
 
     def close(self) -> None:
-        with self._lock:
-            sessions = list(self._sessions.values())
-        for s in sessions:
-            s.stop()
+        """Stop taking input, let the workers finish what is queued, leave zenoh."""
         self._token.undeclare()
         for d in self._decls:
             d.undeclare()
+        self._pool.stop()
         self.zenoh.close()
 
 
@@ -195,6 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="JSON5 zenoh config (client/router mode, other endpoints); overrides --listen/--connect",
     )
     p.add_argument("--particles", type=int, default=2000, help="particles of PF sessions")
+    p.add_argument("--workers", type=int, default=2, help="worker threads shared by all sessions")
     p.add_argument("--blas-threads", type=int, default=0, help="BLAS threads (0: library default)")
     return p
 
@@ -213,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         tuple(args.connect),
         args.zenoh_config,
         args.particles,
+        args.workers,
     )
     try:
         service = EstimatorService(cfg)

@@ -32,9 +32,40 @@ from estimator_service.service.protocol import (
     parse_step,
 )
 
-__all__ = ["Session", "SessionSettings"]
+__all__ = ["Session", "SessionSettings", "WorkerPool"]
 
 QUEUE_CAP = 100_000
+BATCH = 32  # inputs a worker takes from one session before giving others a turn
+
+
+class WorkerPool:
+    """A few worker threads serving many sessions.
+
+    A session with pending inputs sits on the ready queue at most once, so exactly one
+    worker at a time runs its inputs, in arrival order; after :data:`BATCH` inputs it goes
+    to the back of the queue. A handful of threads instead of one per session keeps the
+    interpreter from switching between hundreds of threads.
+    """
+
+    def __init__(self, workers: int = 2) -> None:
+        self._ready: queue.SimpleQueue = queue.SimpleQueue()
+        self._threads = [threading.Thread(target=self._loop, name=f"estimator-worker-{i}", daemon=True)
+                         for i in range(max(1, workers))]  # fmt: skip
+        for t in self._threads:
+            t.start()
+
+    def schedule(self, session: Session) -> None:
+        self._ready.put(session)
+
+    def _loop(self) -> None:
+        while (session := self._ready.get()) is not None:
+            session._drain()
+
+    def stop(self) -> None:
+        for _ in self._threads:
+            self._ready.put(None)
+        for t in self._threads:
+            t.join(timeout=10)
 
 
 @dataclass(frozen=True)
@@ -67,7 +98,10 @@ class Session:
     rejected: int = 0
     late: int = 0
     t: float | None = None
-    _queue: queue.Queue = field(default_factory=lambda: queue.Queue(QUEUE_CAP))
+    pool: WorkerPool | None = None
+    _pending: deque = field(default_factory=deque)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _scheduled: bool = False
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
     _controls: list = field(default_factory=list)
 
@@ -77,37 +111,56 @@ class Session:
             np.array(self.settings.prior_mean), np.diag(np.square(self.settings.prior_std))
         )
         self._install(prior, self.seed)
-        self._thread = threading.Thread(target=self._run, name=f"session-{self.blimp}", daemon=True)
-        self._thread.start()
+        self._own_pool = self.pool is None
+        if self.pool is None:
+            self.pool = WorkerPool(1)
 
     # -- called from zenoh callbacks: enqueue only --------------------------------------------
     def submit(self, kind: str, payload: bytes, query: Any = None, extra: Any = None) -> None:
-        try:
-            self._queue.put_nowait((kind, payload, query, extra))
-        except queue.Full:
+        with self._lock:
+            full = len(self._pending) >= QUEUE_CAP
+            if not full:
+                self._pending.append((kind, payload, query, extra))
+                wake, self._scheduled = not self._scheduled, True
+        if full:
             self.rejected += 1
             if query is not None:
                 query.reply_err(encode({"v": PROTOCOL_VERSION, "error": "session queue full"}))
+        elif wake:
+            self.pool.schedule(self)
 
     def stop(self) -> None:
-        self._queue.put(None)
-        self._thread.join(timeout=5)
+        if self._own_pool:
+            self.pool.stop()
 
     # -- worker ----------------------------------------------------------------------------------
-    def _run(self) -> None:
-        while (job := self._queue.get()) is not None:
-            kind, payload, query, extra = job
-            try:
-                reply = self._handle(kind, payload, extra)
-                if query is not None:
-                    query.reply(query.key_expr, reply)
-            except ProtocolError as exc:
-                self._reject(str(exc), kind, query)
-            except Exception as exc:  # a filter failure must not kill the session
-                self._reject(f"{type(exc).__name__}: {exc}", kind, query)
-            finally:
-                if query is not None:
-                    query.drop()
+    def _drain(self) -> None:
+        """Run up to :data:`BATCH` pending inputs (called by one worker at a time)."""
+        for _ in range(BATCH):
+            with self._lock:
+                if not self._pending:
+                    self._scheduled = False
+                    return
+                job = self._pending.popleft()
+            self._run_one(*job)
+        with self._lock:
+            again = bool(self._pending)
+            self._scheduled = again
+        if again:
+            self.pool.schedule(self)
+
+    def _run_one(self, kind: str, payload: bytes, query: Any, extra: Any) -> None:
+        try:
+            reply = self._handle(kind, payload, extra)
+            if query is not None:
+                query.reply(query.key_expr, reply)
+        except ProtocolError as exc:
+            self._reject(str(exc), kind, query)
+        except Exception as exc:  # a filter failure must not kill the session
+            self._reject(f"{type(exc).__name__}: {exc}", kind, query)
+        finally:
+            if query is not None:
+                query.drop()
 
     def _reject(self, text: str, kind: str, query: Any) -> None:
         self.rejected += 1
@@ -259,7 +312,7 @@ class Session:
                 "rejected": self.rejected,
                 "late": self.late,
                 "t": self.t,
-                "queue": self._queue.qsize(),
+                "queue": len(self._pending),
                 "timings": {
                     "count": len(self._timings),
                     "step_ms_p50": float(np.median(ms)),
