@@ -1,6 +1,6 @@
-"""One blimp's estimator session: its belief, its input queue and its worker thread.
+"""One blimp's estimator session (its belief and input queue) and the shared worker pool.
 
-Zenoh callbacks only enqueue; the worker decodes, validates and filters, so filtering
+Zenoh callbacks only enqueue; a pool worker decodes, validates and filters, so filtering
 never runs in a zenoh thread. A message that fails validation, arrives late (older than
 the session's time) or makes the filter fail is rejected and counted, and the belief
 stays as it was.
