@@ -14,12 +14,10 @@
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import socket
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -34,8 +32,9 @@ from tqdm import tqdm
 import gpbf_env
 from agents.bridge import EstimatorClient, env_frames, open_session, services
 from agents.pilots import WaypointPilot, make_pilot
+from agents.plots import save_figure
 from agents.recorder import collect_flight, save_flight
-from agents.tracking import GROUPS
+from agents.tracking import GROUPS, group_rms, state_error
 from agents.training import TrainSettings, train_models
 from gpbf_env.camera import euler_to_matrix, fit_ellipse_image, outline_ellipses, render_frame
 
@@ -64,15 +63,6 @@ def fly(seconds: float = 60.0, seed: int = 0) -> dict[str, np.ndarray]:
         "valid": np.array(valid),
         "return": np.array(reward),
     }
-
-
-def _save(fig: plt.Figure, path: Path) -> None:
-    """Write the figure atomically (temp file in the same folder, then rename)."""
-    fd, tmp = tempfile.mkstemp(suffix=".png", dir=path.parent)
-    os.close(fd)
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
 
 
 def plot_camera_views(state: np.ndarray, path: Path, seed: int = 0) -> None:
@@ -109,7 +99,7 @@ def plot_camera_views(state: np.ndarray, path: Path, seed: int = 0) -> None:
         ax.legend(loc="lower right", fontsize=8)
         ax.set_axis_off()
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
@@ -139,7 +129,7 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     ax.set_title("top-down")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _free_port() -> int:
@@ -207,12 +197,6 @@ def fly_through_service(
     }
 
 
-def rms_groups(err: np.ndarray) -> dict[str, float]:
-    err = err.copy()
-    err[:, 3:6] = (err[:, 3:6] + np.pi) % (2 * np.pi) - np.pi
-    return {name: float(np.sqrt(np.mean(err[:, s] ** 2)) * f) for name, (s, f) in GROUPS.items()}
-
-
 def plot_service_tracking(log: dict[str, np.ndarray], kinds: tuple[str, ...], path: Path) -> None:
     t = np.arange(len(log["truth"])) * 0.25
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
@@ -227,7 +211,7 @@ def plot_service_tracking(log: dict[str, np.ndarray], kinds: tuple[str, ...], pa
     axes[-1].set_xlabel("time (s)")
     fig.suptitle("beliefs from the zenoh estimator service (lock-step), 3-sigma bands")
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -275,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
         proc.send_signal(signal.SIGTERM)
         code = proc.wait(timeout=30)
     print(f"estimator service shut down cleanly (exit code {code}): {proc.stdout.read().strip()}")
-    scores = {k: rms_groups(fl[k] - fl["truth"]) for k in kinds}
+    scores = {k: group_rms(state_error(fl[k], fl["truth"])) for k in kinds}
     print(f"tracking RMS over {len(fl['truth'])} steps (UKF):")
     for name in GROUPS:
         gp, par = scores["egp"][name], scores["param"][name]

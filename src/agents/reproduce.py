@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from agents.landmark import run_landmark_experiment
 from agents.recorder import Flight, collect_flight
-from agents.tracking import GROUPS, aggregate_rms, track_flight
+from agents.tracking import aggregate_rms, group_rms, state_error, track_flight
 from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 
@@ -64,18 +64,11 @@ def split_folds(flight: Flight, k: int) -> list[tuple[Flight, Flight]]:
     return out
 
 
-def _wrap(d: np.ndarray) -> np.ndarray:
-    d = d.copy()
-    d[:, 3:6] = (d[:, 3:6] + math.pi) % (2 * math.pi) - math.pi
-    return d
-
-
 def one_step_errors(folder: Path, test: Flight, kind: str) -> dict[str, float]:
     """Table 5: RMS one-step prediction error per state group; Table 6: observation error."""
     pred, obs = load_models(folder, kind)
     inp, change = prediction_data([test])
-    err = _wrap(pred.predict(inp[:, :12], inp[:, 12:]).mean - change)
-    out = {g: float(np.sqrt(np.mean(err[:, s] ** 2)) * f) for g, (s, f) in GROUPS.items()}
+    out = group_rms(state_error(pred.predict(inp[:, :12], inp[:, 12:]).mean, change))
     z = obs.observe(test.state).mean.reshape(len(test), -1, 5)
     e = z - test.ellipses
     e[..., 4] = (e[..., 4] + math.pi / 2) % math.pi - math.pi / 2

@@ -14,7 +14,16 @@ from scipy.stats import chi2
 from agents.recorder import Flight
 from estimator_service.filters import PF, GaussianBelief, StepInfo, make_pd
 
-__all__ = ["GROUPS", "TrackResult", "aggregate_rms", "score", "track_flight"]
+__all__ = [
+    "GROUPS",
+    "TrackResult",
+    "aggregate_rms",
+    "group_rms",
+    "score",
+    "state_error",
+    "track_flight",
+    "wrap_angle",
+]
 
 FloatArray = NDArray[np.float64]
 # state groups and the unit factors of the paper's tables (mm, deg, mm/s, deg/s)
@@ -24,8 +33,23 @@ GROUPS = {
     "velocity_mm_s": (slice(6, 9), 1000.0),
     "ang_velocity_deg_s": (slice(9, 12), 180.0 / math.pi),
 }
-ANGLES = np.zeros(12, dtype=bool)
-ANGLES[3:6] = True
+
+
+def wrap_angle(a: FloatArray) -> FloatArray:
+    """Angles wrapped to ``[-pi, pi)``."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def state_error(estimate: FloatArray, truth: FloatArray) -> FloatArray:
+    """``estimate - truth`` for states ``(T, 12)`` with the Euler-angle errors wrapped."""
+    e = np.array(estimate - truth, dtype=np.float64)
+    e[:, 3:6] = wrap_angle(e[:, 3:6])
+    return e
+
+
+def group_rms(err: FloatArray) -> dict[str, float]:
+    """RMS of state errors ``(T, 12)`` per group of :data:`GROUPS`, in paper units."""
+    return {name: float(np.sqrt(np.mean(err[:, s] ** 2)) * f) for name, (s, f) in GROUPS.items()}
 
 
 @dataclass(frozen=True)
@@ -54,9 +78,7 @@ class TrackResult:
 
     @property
     def error(self) -> FloatArray:
-        e = self.mean - self.truth
-        e[:, ANGLES] = (e[:, ANGLES] + math.pi) % (2 * math.pi) - math.pi
-        return e
+        return state_error(self.mean, self.truth)
 
     def scores(self) -> dict[str, float]:
         return score(self)
@@ -123,7 +145,7 @@ def score(r: TrackResult) -> dict[str, float]:
     (chi-square 99.73% with 12 degrees of freedom) on more than 10% of the steps.
     """
     e = r.error
-    out = {name: float(np.sqrt(np.mean(e[:, s] ** 2)) * f) for name, (s, f) in GROUPS.items()}
+    out = group_rms(e)
     try:
         ls = np.linalg.cholesky(r.cov)
     except np.linalg.LinAlgError:  # a collapsed particle cloud: factor each step robustly

@@ -7,7 +7,6 @@ frames that camera delivered. Both are subsampled to ``n_points`` (paper: ~900).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.recorder import Flight
+from agents.tracking import wrap_angle
 from estimator_service.factory import MODEL_KINDS, save_parametric
 from estimator_service.gp import Progress, fit_enhanced, fit_exact, fit_hetero, fit_sparse, save_gp
 from estimator_service.models.blimp import BlimpODE, fit_blimp_ode
@@ -50,16 +50,12 @@ class TrainSettings:
     hetero_iterations: int = 2
 
 
-def wrap(a: FloatArray) -> FloatArray:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def prediction_data(flights: Sequence[Flight]) -> tuple[FloatArray, FloatArray]:
     """Inputs ``[x, u] (T, 15)`` and targets ``x' - x (T, 12)`` from all transitions."""
     xs, us, xn = zip(*(f.transitions() for f in flights), strict=True)
     x, u, x_next = np.concatenate(xs), np.concatenate(us), np.concatenate(xn)
     change = x_next - x
-    change[:, 3:6] = wrap(change[:, 3:6])
+    change[:, 3:6] = wrap_angle(change[:, 3:6])
     return np.concatenate([x, u], axis=1), change
 
 

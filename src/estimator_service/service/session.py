@@ -199,8 +199,8 @@ class Session:
         self._rng = np.random.default_rng(seed)
         self._belief = self._filter.initial(belief, self._rng) if isinstance(self._filter, PF) else belief
 
-    def _gaussian(self) -> GaussianBelief:
-        return self._filter.gaussian(self._belief) if isinstance(self._filter, PF) else self._belief
+    def _gaussian(self, belief: Any) -> GaussianBelief:
+        return self._filter.gaussian(belief) if isinstance(self._filter, PF) else belief
 
     def _predict(self, belief, u):
         if isinstance(self._filter, PF):
@@ -223,10 +223,7 @@ class Session:
 
     def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
         """Adopt the new belief (only after everything succeeded) and encode it."""
-        if isinstance(self._filter, PF):
-            g = self._filter.gaussian(belief)
-        else:
-            g = belief
+        g = self._gaussian(belief)
         if not (np.all(np.isfinite(g.mean)) and np.all(np.isfinite(g.cov))):
             raise ProtocolError("filter produced a non-finite belief; input rejected")
         self._belief, self.t = belief, t
@@ -284,7 +281,7 @@ class Session:
             self._filter = self.make_filter(self.filter_name, self.model_name)
         self._install(GaussianBelief(r.mean, r.cov), r.seed)
         self.t, self.steps, self._controls = r.t, 0, []
-        g = self._gaussian()
+        g = self._gaussian(self._belief)
         return encode_belief(
             self.blimp,
             r.seq,
