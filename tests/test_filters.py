@@ -228,6 +228,32 @@ def test_divergence_is_flagged_not_returned_as_nan(kind: str) -> None:
     assert info.diverged
 
 
+@dataclass(frozen=True)
+class BrokenPrediction:
+    """A prediction model that overflows (a model queried far outside its data)."""
+
+    state_dim: int = 4
+    control_dim: int = 2
+
+    def predict(self, x, u, *, jac=False, var=True):
+        inf = np.full(x.shape, np.inf)
+        return ModelOutput(inf, np.ones(x.shape), np.full((*x.shape, 4), np.inf) if jac else None)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_non_finite_prediction_keeps_the_belief_and_flags_divergence(cls) -> None:
+    filt = cls(BrokenPrediction(), OBS)
+    post, info = filt.step(PRIOR, np.zeros(2), np.zeros(3), None)
+    assert info.diverged and post is PRIOR
+    again, info2 = filt.step(post, np.zeros(2), np.zeros(3), None)  # and the next step too
+    assert info2.diverged and np.all(np.isfinite(again.cov))
+    if cls is EKF:
+        (b, i), (_, i2) = filt.step_many(
+            [PRIOR, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
+        )
+        assert i.diverged and i2.diverged and b is PRIOR
+
+
 def test_implausible_innovation_is_flagged() -> None:
     _, info = EKF(PRED, OBS).step(PRIOR, np.zeros(2), np.array([100.0, -100.0, 0.0]), None)
     assert info.diverged and info.nis > 1e3
@@ -265,3 +291,36 @@ def test_regularised_resampling_keeps_the_cloud_diverse_and_consistent() -> None
     g = rough.gaussian(beliefs["rough"])
     assert np.all(np.abs(g.mean - mean) < 5 * np.sqrt(np.diag(cov)))
     np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.5)
+
+
+def test_batched_ekf_step_equals_one_blimp_at_a_time() -> None:
+    """The service batches many blimps' EKF steps into one GP call: same beliefs, any
+    camera subset per blimp (none, one camera, both), up to rounding."""
+    from estimator_service.gp import ExactGP, Scaler
+    from estimator_service.models import GPObservationModel, GPPredictionModel
+
+    rng = np.random.default_rng(3)
+    nx, nu, nz, n = 4, 2, 6, 200
+    x = rng.normal(size=(n, nx + nu))
+    xo = rng.normal(size=(n, nx))
+    theta_p = np.column_stack([np.full((nx, nx + nu), 0.4), np.full(nx, -1.0), np.full(nx, -3.0)])
+    theta_o = np.column_stack([np.full((nz, nx), 0.3), np.zeros(nz), np.full(nz, -2.5)])
+    one = lambda d: Scaler(np.zeros(d), np.ones(d))  # noqa: E731
+    gp_p = ExactGP.from_theta(x, 0.1 * np.tanh(x[:, :nx]), theta_p, one(nx + nu), one(nx))
+    gp_o = ExactGP.from_theta(xo, np.tanh(xo @ rng.normal(size=(nx, nz))), theta_o, one(nx), one(nz))
+    ekf = EKF(GPPredictionModel(gp_p, nx), GPObservationModel(gp_o))
+    b = 9
+    beliefs = [
+        GaussianBelief(rng.normal(size=nx) * 0.5, np.diag(rng.uniform(0.01, 0.1, nx))) for _ in range(b)
+    ]
+    u, z = rng.normal(size=(b, nu)), rng.normal(size=(b, nz))
+    valid = np.zeros((b, nz), bool)
+    for i in range(b):
+        valid[i, : 3 * (i % 3)] = True  # 0, 1 or 2 "cameras" of 3 values
+    batched = ekf.step_many(beliefs, u, z, valid)
+    for i in range(b):
+        one_belief, info = ekf.step(beliefs[i], u[i], z[i], valid[i])
+        np.testing.assert_allclose(batched[i][0].mean, one_belief.mean, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(batched[i][0].cov, one_belief.cov, rtol=1e-10, atol=1e-12)
+        assert batched[i][1].dof == info.dof == int(valid[i].sum())
+        assert not np.array_equal(batched[i][0].mean, beliefs[i].mean)

@@ -70,10 +70,12 @@ class EstimatorClient:
     ) -> dict[str, Any]:
         """Send a query (``step``, ``reset``, ``status``) and decode its single reply."""
         payload = raw if raw is not None else (encode(message) if message is not None else None)
-        replies = list(self.session.get(f"gpbf/{self.blimp}/{kind}", payload=payload, timeout=self.timeout))
-        if not replies:
-            raise ServiceError(f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s")
-        r = replies[0]
+        handler = self.session.get(f"gpbf/{self.blimp}/{kind}", payload=payload, timeout=self.timeout)
+        try:  # the first reply is the answer: no wait for the query's final message
+            r = handler.recv()
+        except zenoh.ZError:  # closed without a reply
+            msg = f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
+            raise ServiceError(msg) from None
         if r.ok is None:
             raw_err = r.err.payload.to_bytes()
             try:

@@ -76,7 +76,9 @@ def _algo(spec: AgentSpec, venv: VecEnv, small: bool) -> BaseAlgorithm:
     cls = ALGOS[spec.algo]
     if spec.algo == "ppo":
         kw = (
-            {"n_steps": 64, "batch_size": 64, "n_epochs": 2} if small else {"n_steps": 512, "batch_size": 128}
+            {"n_steps": 64, "batch_size": 64, "n_epochs": 2}
+            if small
+            else {"n_steps": max(2048 // venv.num_envs, 64), "batch_size": 256, "gamma": 0.98}
         )
     else:
         kw = (

@@ -8,7 +8,7 @@ One argument selects the observation variant:
 * ``ellipses`` - the raw camera ellipses, valid flags and the last action (the naive baseline).
 
 Every variant also carries the task's goal (relative to the believed position for the
-state/belief variants, absolute for ``ellipses``). Features are scaled to order one and
+state/belief variants, in its heading frame; absolute for ``ellipses``). Features are scaled to order one and
 returned as a fixed ``Box(-10, 10, float32)``. Two back ends run the filter: ``inprocess`` (fast, for
 training) and ``service`` (the zenoh estimator service through the bridge, lock-step).
 """
@@ -37,7 +37,11 @@ FEATURE_BOUND = 10.0  # features are scaled to order one; clipped here
 
 
 def _goal_features(mean: FloatArray, goal: FloatArray) -> FloatArray:
-    rel = (goal[:3] - mean[:3]) / ROOM_HALF
+    """Goal offset in the heading frame (forward, left, up; metres, clipped to +-3) and
+    sine/cosine of the yaw error: what a pilot steers by."""
+    dx, dy, dz = goal[:3] - mean[:3]
+    c, s = np.cos(mean[5]), np.sin(mean[5])
+    rel = np.clip([c * dx + s * dy, -s * dx + c * dy, dz], -3.0, 3.0)
     dyaw = goal[3] - mean[5]
     return np.concatenate([rel, [np.sin(dyaw), np.cos(dyaw)]])
 

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from gpbf_env.core import WorldConfig, check_action, initial_state, observe
 from gpbf_env.dynamics import Coeffs, make_coeffs, rk4_step
 from gpbf_env.params import BlimpParams
-from gpbf_env.tasks import sample_goals, task_reward
+from gpbf_env.tasks import hover_start, sample_goals, task_reward
 
 __all__ = ["BlimpEnv"]
 
@@ -56,10 +56,11 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     heading error to its direction, +10 on reaching a waypoint. -20 on a crash.
 
     ## Starting State
-    Uniform position in the room's centre region, yaw uniform, roll and pitch ~N(0, 0.05)
-    rad, at rest, motors off; goals drawn uniformly. ``reset(options=...)`` accepts
-    ``state`` (12 floats), ``goal`` (x, y, z[, yaw]), ``randomize`` (a scale) and ``params``
-    (a :class:`BlimpParams`).
+    At rest, motors off, roll and pitch ~N(0, 0.05) rad; goals drawn uniformly in the room's
+    centre region. Waypoint: uniform position in the centre region, yaw uniform. Hover
+    (station keeping): within 1 m of the goal on each axis, yaw within 0.5 rad of its yaw.
+    ``reset(options=...)`` accepts ``state`` (12 floats), ``goal`` (x, y, z[, yaw]),
+    ``randomize`` (a scale) and ``params`` (a :class:`BlimpParams`).
 
     ## Episode End
     Termination when the blimp leaves the room or its envelope touches the floor or the
@@ -112,6 +113,8 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         params = cfg.draw_params(rng)
         state = initial_state(rng, cfg.room)
         goals = sample_goals(rng, cfg.room, cfg.task)
+        if cfg.task == "hover":
+            state = hover_start(rng, state, goals[0])
         if "state" in options:
             state = _vector_option(options["state"], 12, "state")
         if "goal" in options:

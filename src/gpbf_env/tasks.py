@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["TASKS", "RewardWeights", "sample_goals", "task_reward"]
+__all__ = ["HOVER_START_RADIUS", "TASKS", "RewardWeights", "hover_start", "sample_goals", "task_reward"]
 
 TASKS = ("hover", "waypoint")
 FloatArray = NDArray[np.float64]
@@ -54,6 +54,22 @@ def sample_goals(
     pos = rng.uniform(lo, hi, size=(n, 3))
     yaw = rng.uniform(-math.pi, math.pi, size=(n, 1))
     return np.concatenate([pos, yaw], axis=1)
+
+
+HOVER_START_RADIUS = 1.0
+"""Hover episodes start at most this far (m, per axis) from the goal."""
+
+
+def hover_start(rng: np.random.Generator, state: FloatArray, goal: FloatArray) -> FloatArray:
+    """Move a start ``state (12,)`` next to a hover ``goal (4,)``: station keeping, not travel.
+
+    The position is drawn uniformly within :data:`HOVER_START_RADIUS` of the goal on each
+    axis and the yaw within 0.5 rad of the goal yaw; the rest of ``state`` is kept.
+    """
+    out = np.array(state, dtype=np.float64)
+    out[:3] = goal[:3] + rng.uniform(-HOVER_START_RADIUS, HOVER_START_RADIUS, size=3)
+    out[5] = float(_wrap(np.array(goal[3] + rng.uniform(-0.5, 0.5))))
+    return out
 
 
 def _wrap(a: FloatArray) -> FloatArray:

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from gpbf_env.core import WorldConfig, check_action, initial_state, observe
 from gpbf_env.dynamics import make_coeffs, rk4_step
 from gpbf_env.params import BlimpParams
-from gpbf_env.tasks import sample_goals, task_reward
+from gpbf_env.tasks import hover_start, sample_goals, task_reward
 
 __all__ = ["BlimpVectorEnv"]
 
@@ -148,6 +148,8 @@ class BlimpVectorEnv(VectorEnv):
             self._params[i] = params
             self._state[:, i] = initial_state(rng, cfg.room)
             self._goals[i] = sample_goals(rng, cfg.room, cfg.task, self._goals.shape[1])
+            if cfg.task == "hover":
+                self._state[:, i] = hover_start(rng, self._state[:, i], self._goals[i, 0])
             self._wind[:, i] = rng.normal(0.0, params.gust_std, size=3)
             noise[j] = rng.standard_normal(cfg.noise_size - 3)
         if changed:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,8 +82,14 @@ class _GaussianFilter:
         self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
         valid: NDArray[np.bool_] | None = None,
     ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``."""
+        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``.
+
+        If the prediction is not finite (a model evaluated far outside its data), the step
+        keeps ``belief`` and flags divergence instead of returning NaN.
+        """
         prior = self.predict(belief, u)
+        if not finite(prior.mean, prior.cov):
+            return belief, StepInfo(math.nan, 0, True)
         if z is None:
             return prior, StepInfo()
         return self.update(prior, z, valid)
@@ -105,23 +112,64 @@ class EKF(_GaussianFilter):
 
     def predict(self, belief: GaussianBelief, u: FloatArray) -> GaussianBelief:
         """Steps 2-5 of Table 2."""
-        out = self.prediction.predict(belief.mean[None], u, jac=True)
-        g = np.eye(belief.mean.size) + out.jac[0]
-        cov = g @ belief.cov @ g.T + np.diag(out.var[0])
-        return GaussianBelief(self._wrap.state_value(belief.mean + out.mean[0]), 0.5 * (cov + cov.T))
+        return self.predict_many([belief], np.asarray(u, dtype=np.float64)[None])[0]
+
+    def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
+        """:meth:`predict` for ``B`` independent beliefs in one model call (``u: (B, k)``).
+
+        The service uses it to serve many blimps at once: one batched GP call instead of
+        ``B`` single-query calls. Each result equals :meth:`predict` up to rounding.
+        """
+        means = np.stack([b.mean for b in beliefs])
+        out = self.prediction.predict(means, u, jac=True)
+        g = np.eye(means.shape[1]) + out.jac
+        covs = g @ np.stack([b.cov for b in beliefs]) @ g.transpose(0, 2, 1)
+        covs[:, *np.diag_indices(means.shape[1])] += out.var
+        covs = 0.5 * (covs + covs.transpose(0, 2, 1))
+        new_means = self._wrap.state_value(means + out.mean)
+        return [GaussianBelief(m, c) for m, c in zip(new_means, covs, strict=True)]
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None
     ) -> tuple[GaussianBelief, StepInfo]:
         """Steps 6-11 of Table 2, with exactly the observation entries marked ``valid``."""
-        idx = _valid_index(valid, self.observation.obs_dim)
-        if idx.size == 0:
-            return prior, StepInfo()
-        obs = self.observation.observe(prior.mean[None], jac=True)
-        h, r_noise = obs.jac[0, idx], obs.var[0, idx]
-        r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - obs.mean[0, idx], idx)
-        s = h @ prior.cov @ h.T + np.diag(r_noise)
-        return _kalman_update(prior, r, s, prior.cov @ h.T, self._wrap, h, r_noise)
+        z = np.asarray(z, dtype=np.float64)
+        v = np.ones(z.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
+        return self.update_many([prior], z[None], v[None])[0]
+
+    def update_many(
+        self, priors: Sequence[GaussianBelief], z: FloatArray, valid: NDArray[np.bool_]
+    ) -> list[tuple[GaussianBelief, StepInfo]]:
+        """:meth:`update` for ``B`` beliefs, ``z: (B, m)``, ``valid: (B, m)``: one model call
+        for all beliefs with any valid entry, then a small Kalman update each."""
+        results: list[tuple[GaussianBelief, StepInfo]] = [(p, StepInfo()) for p in priors]
+        rows = np.flatnonzero(valid.any(axis=1))
+        if rows.size == 0:
+            return results
+        obs = self.observation.observe(np.stack([priors[i].mean for i in rows]), jac=True)
+        for j, i in enumerate(rows):  # per blimp: 12 x 12 algebra on its own camera subset
+            idx = np.flatnonzero(valid[i])
+            h, r_noise = obs.jac[j, idx], obs.var[j, idx]
+            r = self._wrap.obs_diff(z[i, idx] - obs.mean[j, idx], idx)
+            cov = priors[i].cov
+            s = h @ cov @ h.T + np.diag(r_noise)
+            results[i] = _kalman_update(priors[i], r, s, cov @ h.T, self._wrap, h, r_noise)
+        return results
+
+    def step_many(
+        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_]
+    ) -> list[tuple[GaussianBelief, StepInfo]]:
+        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``."""
+        priors = self.predict_many(beliefs, u)
+        ok = [finite(p.mean, p.cov) for p in priors]
+        out = self.update_many(
+            [p if f else b for p, b, f in zip(priors, beliefs, ok, strict=True)],
+            z,
+            valid & np.array(ok)[:, None],
+        )
+        return [
+            r if f else (b, StepInfo(math.nan, 0, True)) for r, b, f in zip(out, beliefs, ok, strict=True)
+        ]
 
 
 def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[FloatArray, FloatArray, float]:

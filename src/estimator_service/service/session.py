@@ -36,6 +36,7 @@ __all__ = ["Session", "SessionSettings", "WorkerPool"]
 
 QUEUE_CAP = 100_000
 BATCH = 32  # inputs a worker takes from one session before giving others a turn
+GROUP = 64  # sessions a worker takes from the ready queue at once (batched EKF steps)
 
 
 class WorkerPool:
@@ -45,6 +46,11 @@ class WorkerPool:
     worker at a time runs its inputs, in arrival order; after :data:`BATCH` inputs it goes
     to the back of the queue. A handful of threads instead of one per session keeps the
     interpreter from switching between hundreds of threads.
+
+    Under load a worker takes every session waiting on the ready queue (up to
+    :data:`GROUP`); those whose next input is a lock-step ``step`` for the same batchable
+    filter (the EKF) are stepped together: one GP call for all of them instead of one per
+    blimp. Each belief equals the one-at-a-time result up to rounding (about 1e-15).
     """
 
     def __init__(self, workers: int = 2) -> None:
@@ -59,13 +65,70 @@ class WorkerPool:
 
     def _loop(self) -> None:
         while (session := self._ready.get()) is not None:
-            session._drain()
+            group = [session]
+            while len(group) < GROUP:
+                try:
+                    more = self._ready.get_nowait()
+                except queue.Empty:
+                    break
+                if more is None:  # stop: leave the sentinel for this or another worker
+                    self._ready.put(None)
+                    break
+                group.append(more)
+            self._serve(group)
+
+    @staticmethod
+    def _serve(group: list[Session]) -> None:
+        batches: dict[int, list[tuple[Session, tuple]]] = {}
+        for s in group:
+            job = s._head_step() if len(group) > 1 and hasattr(s._filter, "step_many") else None
+            if job is None:
+                s._drain()
+            else:
+                batches.setdefault(id(s._filter), []).append((s, job))
+        for batch in batches.values():
+            step_together(batch)
 
     def stop(self) -> None:
         for _ in self._threads:
             self._ready.put(None)
         for t in self._threads:
             t.join(timeout=10)
+
+
+def step_together(batch: list[tuple[Session, tuple]]) -> None:
+    """Run one lock-step ``step`` job of each session in one batched filter call.
+
+    Inputs that fail validation are rejected one by one, exactly as unbatched; if the
+    batched call itself fails, every job runs on its own.
+    """
+    t0 = time.perf_counter()
+    ready = []
+    for s, job in batch:
+        try:
+            ready.append((s, job, s._prepare_step(job[1])))
+        except ProtocolError as exc:
+            s._reject(str(exc), job[0], job[2])
+            s._close_job(job)
+    try:
+        if ready:
+            results = ready[0][0]._filter.step_many(
+                [s._belief for s, _, _ in ready],
+                np.stack([p[0].u for _, _, p in ready]),
+                np.stack([p[1] for _, _, p in ready]),
+                np.stack([p[2] for _, _, p in ready]),
+            )
+    except Exception:  # fall back: each job alone, with its own error handling
+        for s, job, _ in ready:
+            s._run_one(*job)
+            s._close_job(job)
+        return
+    for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
+        s._answer(
+            job,
+            lambda s=s, step=step, belief=belief, info=info: s._commit(belief, info, step.seq, step.t, t0),
+        )
+        s._close_job(job)
 
 
 @dataclass(frozen=True)
@@ -150,17 +213,41 @@ class Session:
             self.pool.schedule(self)
 
     def _run_one(self, kind: str, payload: bytes, query: Any, extra: Any) -> None:
+        self._answer((kind, payload, query, extra), lambda: self._handle(kind, payload, extra))
+        if query is not None:
+            query.drop()
+
+    def _answer(self, job: tuple, compute: Callable[[], bytes | None]) -> None:
+        """Reply to ``job``'s query (if any) with ``compute()``, or reject the input."""
+        kind, _, query, _ = job
         try:
-            reply = self._handle(kind, payload, extra)
+            reply = compute()
             if query is not None:
                 query.reply(query.key_expr, reply)
+            if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
+                self.publish("belief", reply)
         except ProtocolError as exc:
             self._reject(str(exc), kind, query)
         except Exception as exc:  # a filter failure must not kill the session
             self._reject(f"{type(exc).__name__}: {exc}", kind, query)
-        finally:
-            if query is not None:
-                query.drop()
+
+    # -- batched steps (see WorkerPool) ----------------------------------------------------------
+    def _head_step(self) -> tuple | None:
+        """Pop the next input if it is a lock-step ``step`` (to batch it), else None."""
+        with self._lock:
+            if self._pending and self._pending[0][0] == "step":
+                return self._pending.popleft()
+        return None
+
+    def _close_job(self, job: tuple) -> None:
+        """After a batched job: release its query; back on the ready queue if more wait."""
+        if job[2] is not None:
+            job[2].drop()
+        with self._lock:
+            again = bool(self._pending)
+            self._scheduled = again
+        if again:
+            self.pool.schedule(self)
 
     def _reject(self, text: str, kind: str, query: Any) -> None:
         self.rejected += 1
@@ -172,11 +259,11 @@ class Session:
     def _handle(self, kind: str, payload: bytes, extra: Any) -> bytes | None:
         if kind == "status":
             return self._status()
+        if kind == "step":
+            return self._step(payload)
         msg = decode(payload)
         if kind == "reset":
             return self._reset(parse_reset(msg))
-        if kind == "step":
-            return self._step(parse_step(msg, self.settings.n_cameras))
         if kind == "control":
             c = parse_control(msg)
             self._check_time(c.t)
@@ -222,7 +309,8 @@ class Session:
         return z, valid
 
     def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
-        """Adopt the new belief (only after everything succeeded) and encode it."""
+        """Adopt the new belief (only after everything succeeded) and encode it (the caller
+        replies with it and publishes it)."""
         g = self._gaussian(belief)
         if not (np.all(np.isfinite(g.mean)) and np.all(np.isfinite(g.cov))):
             raise ProtocolError("filter produced a non-finite belief; input rejected")
@@ -230,7 +318,7 @@ class Session:
         self.steps += 1
         ms = (time.perf_counter() - t0) * 1e3
         self._timings.append(ms)
-        out = encode_belief(
+        return encode_belief(
             self.blimp,
             seq,
             t,
@@ -243,15 +331,19 @@ class Session:
             info.diverged,
             ms,
         )
-        self.publish("belief", out)
-        return out
 
-    def _step(self, s) -> bytes:
-        t0 = time.perf_counter()
+    def _prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
+        """Decode and check a ``step`` input: the parsed step, ``z`` and ``valid``."""
+        s = parse_step(decode(payload), self.settings.n_cameras)
         if self.t is not None and s.t <= self.t:
             self.late += 1
             raise ProtocolError(f"field 't': step time {s.t} is not after the session time {self.t}")
         z, valid = self._frames(s.frames)
+        return s, z, valid
+
+    def _step(self, payload: bytes) -> bytes:
+        t0 = time.perf_counter()
+        s, z, valid = self._prepare_step(payload)
         belief, info = self._update(self._predict(self._belief, s.u), z, valid)
         return self._commit(belief, info, s.seq, s.t, t0)
 
