@@ -5,7 +5,10 @@ GP n = 900, 12 inputs, 10 outputs; sparse variants with m = 50) are written to a
 model folder; ``gpbf serve`` runs as a separate process.
 
 1. Lock-step round trip p50/p99 for GP-EKF and GP-UKF vs the in-process filter step in the
-   same run; overhead = p50 difference (target <= 0.5 ms).
+   same run; overhead = p50 difference (target <= 0.5 ms). Also: round trip minus the
+   service's own step time (``transport_p50_ms``) and, as the floor, a bare zenoh
+   queryable in another process with the same worker hand-off spinning for the same time
+   (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``).
 2. Blimps at 4 Hz: N clients each send one GP-EKF step every 250 ms (asynchronous
    queries, staggered); the largest N whose p99 latency stays under 50 ms (target >= 200),
    for the sparse GP (``blimps_at_4hz``) and the exact GP.
@@ -80,13 +83,15 @@ def start_service(models: Path, port: int, model: str) -> subprocess.Popen:
     return proc
 
 
-def round_trips(client, models: Path, filt: str, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def round_trips(
+    client, models: Path, filt: str, n: int, model: str = "gp"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Round trips, in-process steps and the service's own step times (ms), ``n`` each."""
     rng = np.random.default_rng(1)
     c = EstimatorClient(client, f"rtt-{filt}")
     mean = rng.normal(size=12) * 0.5
-    c.reset(mean, np.full(12, 0.1), t=0.0, filter=filt, model="gp")
-    local = build_filter(filt, "gp", models)
+    c.reset(mean, np.full(12, 0.1), t=0.0, filter=filt, model=model)
+    local = build_filter(filt, model, models)
     belief = GaussianBelief(mean, np.eye(12) * 0.01)
     rtt, loc, served = [], [], []
     for k in range(n):
@@ -100,6 +105,30 @@ def round_trips(client, models: Path, filt: str, n: int) -> tuple[np.ndarray, np
         belief, _ = local.step(belief, u, z, np.ones(10, bool))
         loc.append(time.perf_counter() - t0)
     return np.array(rtt[5:]) * 1e3, np.array(loc[5:]) * 1e3, np.array(served[5:]) * 1e3
+
+
+def echo_floor(work_ms: float, n: int) -> float:
+    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query."""
+    port = free_port()
+    echo = Path(__file__).with_name("zenoh_echo.py")
+    proc = subprocess.Popen(
+        [sys.executable, str(echo), str(port), str(work_ms / 1e3)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert "ready" in proc.stdout.readline()
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    out = []
+    try:
+        for _ in range(n):
+            t0 = time.perf_counter()
+            session.get("echo/x", payload=b"y" * 150).recv()
+            out.append(time.perf_counter() - t0)
+    finally:
+        session.close()
+        proc.stdin.close()
+        proc.wait(timeout=20)
+    return float(np.median(np.array(out[5:]) * 1e3) - work_ms)
 
 
 def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> float:
@@ -167,7 +196,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--quick", action="store_true", help="short run (under a minute)")
     args = parser.parse_args(argv)
     n_rtt, seconds = (60, 2.0) if args.quick else (400, 6.0)
-    levels = [50, 200] if args.quick else [25, 50, 100, 150, 200, 250, 300, 400]
+    levels = [25, 50, 200] if args.quick else [25, 50, 100, 150, 200, 250, 300, 400]
     with tempfile.TemporaryDirectory() as tmp:
         models = Path(tmp)
         write_models(models)
@@ -187,6 +216,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 p50, p99, lp50 = np.median(rtt), np.percentile(rtt, 99), np.median(loc)
                 print(f"GP-{filt.upper()}: round trip p50 {p50:.3f} ms, p99 {p99:.3f} ms;")
                 print(f"  in-process p50 {lp50:.3f} ms; overhead {p50 - lp50:.3f} ms")
+                floor = echo_floor(float(np.median(served)), n_rtt)
+                res[f"{filt}_zenoh_floor_ms"] = floor
+                print(f"  bare zenoh query, same hand-off and work: {floor:.3f} ms over the work")
                 print(
                     f"  service-side step p50 {np.median(served):.3f} ms; "
                     f"round trip minus it (zenoh, queue, encoding) p50 {np.median(rtt - served):.3f} ms"
@@ -204,6 +236,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "ukf_rtt_p50_ms": round(res["ukf_rtt_p50_ms"], 3),
         "ukf_rtt_p99_ms": round(res["ukf_rtt_p99_ms"], 3),
         "ukf_overhead_p50_ms": round(res["ukf_overhead_p50_ms"], 3),
+        "transport_p50_ms": round(res["ekf_transport_p50_ms"], 3),
+        "zenoh_floor_p50_ms": round(res["ekf_zenoh_floor_ms"], 3),
         "blimps_at_4hz": best_sparse,
         "blimps_at_4hz_model": "sparse",
         "blimps_at_4hz_exact_gp": best_exact,

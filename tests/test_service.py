@@ -124,6 +124,37 @@ def test_lock_step_equals_in_process_filter_bit_for_bit(client, models, flight, 
     np.testing.assert_array_equal(remote, in_process(models, flight, 30, filter_kind, seed=5))
 
 
+def test_concurrent_blimps_are_batched_and_equal_the_in_process_filter(client, models, flight) -> None:
+    """16 blimps step at once: the service runs their EKF steps in batches (one GP call),
+    and every belief still equals the one-at-a-time filter up to rounding."""
+    clients = [EstimatorClient(client, f"crowd-{i}") for i in range(16)]
+    for c in clients:
+        c.reset(flight.state[0], STD, t=flight.t[0], filter="ekf", model="gp")
+    last: dict[str, np.ndarray] = {}
+    for k in range(10):
+        done = threading.Semaphore(0)
+        payload = msgpack.packb(
+            {"v": 1, "seq": k + 1, "t": flight.t[k + 1], "u": flight.control[k].tolist(),
+             "frames": frames_at(flight, k + 1)}
+        )  # fmt: skip
+
+        def got(reply, done=done) -> None:
+            belief = msgpack.unpackb(reply.ok.payload.to_bytes())
+            last[belief["blimp"]] = np.array(belief["mean"])
+            done.release()
+
+        for c in clients:
+            client.get(f"gpbf/{c.blimp}/step", got, payload=payload, timeout=10.0)
+        for _ in clients:
+            assert done.acquire(timeout=10)
+    expected = in_process(models, flight, 10)[-1]
+    for c in clients:
+        np.testing.assert_allclose(last[c.blimp], expected, rtol=1e-7, atol=1e-9)
+    assert sum(c.status()["batched"] for c in clients) > 0
+    for c in clients:
+        c.close()
+
+
 def test_two_blimps_do_not_interfere(client, models, flight) -> None:
     a, b = EstimatorClient(client, "twin-a"), EstimatorClient(client, "twin-b")
     other = collect_flight(10, seed=99)
@@ -136,7 +167,7 @@ def test_two_blimps_do_not_interfere(client, models, flight) -> None:
 
 
 def test_streaming_delivers_one_belief_per_frame_in_order(client, flight) -> None:
-    c = EstimatorClient(client, "stream")
+    c = EstimatorClient(client, "stream", stream=True)
     c.reset(flight.state[0], STD, t=flight.t[0])
     sent = []
     for k in range(40):

@@ -2,8 +2,9 @@
 
 :class:`EstimatorClient` talks to one blimp's session: ``reset`` it, then either
 ``step`` in lock-step (a zenoh query per env step: control + camera frames in, belief out)
-or stream (``publish_control`` / ``publish_camera``; beliefs arrive on a subscriber and are
-read with ``next_belief``). :func:`env_frames` turns a ``gpbf_env`` observation into frames.
+or stream (``stream=True``; ``publish_control`` / ``publish_camera``; beliefs arrive on a
+subscriber and are read with ``next_belief``). :func:`env_frames` turns a ``gpbf_env``
+observation into frames.
 """
 
 from __future__ import annotations
@@ -46,13 +47,21 @@ def env_frames(obs: dict[str, np.ndarray]) -> list[list[Any]]:
 class EstimatorClient:
     """One blimp's view of the service."""
 
-    def __init__(self, session: zenoh.Session, blimp: str, timeout: float = 10.0) -> None:
+    def __init__(
+        self, session: zenoh.Session, blimp: str, timeout: float = 10.0, *, stream: bool = False
+    ) -> None:
         self.session, self.blimp, self.timeout = session, blimp, timeout
         self._seq = 0
         self._beliefs: queue.Queue = queue.Queue()
         self._errors: queue.Queue = queue.Queue()
-        self._sub = session.declare_subscriber(
-            f"gpbf/{blimp}/belief", lambda s: self._beliefs.put(s.payload.to_bytes())
+        # Streamed beliefs only when asked for: a lock-step client gets each belief as the
+        # query's reply, and a subscription would queue a copy of every one, unread.
+        self._sub = (
+            session.declare_subscriber(
+                f"gpbf/{blimp}/belief", lambda s: self._beliefs.put(s.payload.to_bytes())
+            )
+            if stream
+            else None
         )
         self._err = session.declare_subscriber(
             f"gpbf/{blimp}/error", lambda s: self._errors.put(s.payload.to_bytes())
@@ -156,6 +165,8 @@ class EstimatorClient:
 
     def next_belief(self, timeout: float | None = None) -> dict[str, Any]:
         """The next streamed belief (blocks up to ``timeout``)."""
+        if self._sub is None:
+            raise ServiceError("streamed beliefs need EstimatorClient(..., stream=True)")
         try:
             return decode_belief(self._beliefs.get(timeout=timeout or self.timeout))
         except queue.Empty:
@@ -172,4 +183,5 @@ class EstimatorClient:
 
     def close(self) -> None:
         for d in (self._sub, self._err, *self._pubs.values()):
-            d.undeclare()
+            if d is not None:
+                d.undeclare()

@@ -22,7 +22,9 @@ from agents.wrappers import VARIANTS
 __all__ = ["main", "run"]
 
 
-def run(out: Path, timesteps: int, seeds: int, episodes: int, tasks: tuple[str, ...], points: int) -> dict:
+def run(
+    out: Path, timesteps: int, seeds: int, episodes: int, tasks: tuple[str, ...], points: int, n_envs: int = 4
+) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     models = out / "models"
     if not (models / "parametric.npz").exists():
@@ -38,7 +40,9 @@ def run(out: Path, timesteps: int, seeds: int, episodes: int, tasks: tuple[str, 
     for task, variant, seed in tqdm(jobs, desc="train agents", unit="agent"):
         spec = AgentSpec("ppo", variant, task, "ekf", "gp", str(models), seed)
         folder = out / "agents" / f"{task}-{variant}-{seed}"
-        path = train_agent(spec, timesteps, folder, eval_freq=max(timesteps // 5, 1000), progress_bar=False)
+        path = train_agent(
+            spec, timesteps, folder, n_envs=n_envs, eval_freq=max(timesteps // 5, 1000), progress_bar=False
+        )
         res = evaluate_agent(path, episodes=episodes, seed=5000)
         results.setdefault(task, {}).setdefault(variant, []).append(res)
     (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -92,13 +96,16 @@ def write_report(out: Path, results: dict, timesteps: int, seeds: int, episodes:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out", type=Path, default=Path("docs/results/rl"), help="output folder")
-    p.add_argument("--timesteps", type=int, default=50_000, help="PPO steps per agent")
+    p.add_argument(
+        "--timesteps", type=int, default=500_000, help="PPO steps per agent (hover needs several 100k)"
+    )
+    p.add_argument("--n-envs", type=int, default=4, help="environments per PPO rollout")
     p.add_argument("--seeds", type=int, default=3, help="seeds per (task, variant)")
     p.add_argument("--episodes", type=int, default=10, help="evaluation episodes per agent")
     p.add_argument("--tasks", default="hover,waypoint", help="comma-separated tasks")
     p.add_argument("--points", type=int, default=600, help="GP training points")
     a = p.parse_args(argv)
-    run(a.out, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), a.points)
+    run(a.out, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), a.points, a.n_envs)
     print(f"wrote {a.out / 'report.md'}")
     return 0
 

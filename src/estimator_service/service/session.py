@@ -124,6 +124,7 @@ def step_together(batch: list[tuple[Session, tuple]]) -> None:
             s._close_job(job)
         return
     for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
+        s.batched += len(ready) > 1
         s._answer(
             job,
             lambda s=s, step=step, belief=belief, info=info: s._commit(belief, info, step.seq, step.t, t0),
@@ -160,6 +161,7 @@ class Session:
     steps: int = 0
     rejected: int = 0
     late: int = 0
+    batched: int = 0
     t: float | None = None
     pool: WorkerPool | None = None
     _pending: deque = field(default_factory=deque)
@@ -400,6 +402,7 @@ class Session:
                 "steps": self.steps,
                 "rejected": self.rejected,
                 "late": self.late,
+                "batched": self.batched,
                 "t": self.t,
                 "queue": len(self._pending),
                 "timings": {
