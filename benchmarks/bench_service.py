@@ -8,7 +8,8 @@ model folder; ``gpbf serve`` runs as a separate process.
    same run; overhead = p50 difference (target <= 0.5 ms). Also: round trip minus the
    service's own step time (``transport_p50_ms``) and, as the floor, a bare zenoh
    queryable in another process with the same worker hand-off spinning for the same time
-   (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``).
+   (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``). The same round trip with the sparse
+   models (``sparse_overhead_p50_ms``) shows what the exact GP's cache footprint adds.
 2. Blimps at 4 Hz: N clients each send one GP-EKF step every 250 ms (asynchronous
    queries, staggered); the largest N whose p99 latency stays under 50 ms (target >= 200),
    for the sparse GP (``blimps_at_4hz``) and the exact GP.
@@ -39,7 +40,7 @@ from estimator_service.filters import GaussianBelief
 from estimator_service.gp import save_gp
 from estimator_service.models.blimp import DEFAULT_PARAMS, BlimpODE
 from estimator_service.models.camera import CameraModel, PinholeCalibration
-from estimator_service.service.protocol import encode
+from estimator_service.service.protocol import PROTOCOL_VERSION, encode
 
 
 def write_models(folder: Path) -> None:
@@ -149,7 +150,7 @@ def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> float:
             while (now := time.perf_counter()) < due:
                 time.sleep(min(due - now, 0.002))
             msg = {
-                "v": 1,
+                "v": PROTOCOL_VERSION,
                 "seq": tick + 1,
                 "t": 0.25 * (tick + 1),
                 "u": [0.1, 0.0, 0.0],
@@ -223,6 +224,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                     f"  service-side step p50 {np.median(served):.3f} ms; "
                     f"round trip minus it (zenoh, queue, encoding) p50 {np.median(rtt - served):.3f} ms"
                 )
+            # the same path with the small sparse models: how much of the overhead is the exact
+            # GP's 39 MB of factors evicting the transport's code and data from the caches
+            rtt, loc, served = round_trips(session, models, "ekf", n_rtt, model="sparse")
+            res["sparse_overhead_p50_ms"] = np.median(rtt) - np.median(loc)
+            res["sparse_transport_p50_ms"] = np.median(rtt - served)
+            print(
+                f"sparse GP-EKF: round trip p50 {np.median(rtt):.3f} ms, in-process {np.median(loc):.3f} ms; "
+                f"overhead {res['sparse_overhead_p50_ms']:.3f} ms"
+            )
         finally:
             session.close()
             proc.terminate()
@@ -238,6 +248,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "ukf_overhead_p50_ms": round(res["ukf_overhead_p50_ms"], 3),
         "transport_p50_ms": round(res["ekf_transport_p50_ms"], 3),
         "zenoh_floor_p50_ms": round(res["ekf_zenoh_floor_ms"], 3),
+        "sparse_overhead_p50_ms": round(res["sparse_overhead_p50_ms"], 3),
+        "sparse_transport_p50_ms": round(res["sparse_transport_p50_ms"], 3),
         "blimps_at_4hz": best_sparse,
         "blimps_at_4hz_model": "sparse",
         "blimps_at_4hz_exact_gp": best_exact,

@@ -20,7 +20,9 @@ from agents.recorder import collect_flight
 from agents.training import TrainSettings, train_models
 from estimator_service.factory import build_filter
 from estimator_service.filters import PF, GaussianBelief
+from estimator_service.service.protocol import PROTOCOL_VERSION, decode_belief
 
+V = PROTOCOL_VERSION
 STD = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
 
 
@@ -134,12 +136,12 @@ def test_concurrent_blimps_are_batched_and_equal_the_in_process_filter(client, m
     for k in range(10):
         done = threading.Semaphore(0)
         payload = msgpack.packb(
-            {"v": 1, "seq": k + 1, "t": flight.t[k + 1], "u": flight.control[k].tolist(),
+            {"v": PROTOCOL_VERSION, "seq": k + 1, "t": flight.t[k + 1], "u": flight.control[k].tolist(),
              "frames": frames_at(flight, k + 1)}
         )  # fmt: skip
 
         def got(reply, done=done) -> None:
-            belief = msgpack.unpackb(reply.ok.payload.to_bytes())
+            belief = decode_belief(reply.ok.payload.to_bytes())
             last[belief["blimp"]] = np.array(belief["mean"])
             done.release()
 
@@ -184,19 +186,19 @@ def test_streaming_delivers_one_belief_per_frame_in_order(client, flight) -> Non
 
 BAD = {
     "undecodable": (b"\xc1\xc1not msgpack", "undecodable"),
-    "version": (msgpack.packb({"v": 2, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": []}), "version"),
-    "missing": (msgpack.packb({"v": 1, "seq": 1, "t": 99.0, "frames": []}), "missing field 'u'"),
-    "shape": (msgpack.packb({"v": 1, "seq": 1, "t": 99.0, "u": [0, 0], "frames": []}), "'u'"),
-    "nan": (msgpack.packb({"v": 1, "seq": 1, "t": 99.0, "u": [0, math.nan, 0], "frames": []}), "NaN"),
+    "version": (msgpack.packb({"v": 99, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": []}), "version"),
+    "missing": (msgpack.packb({"v": V, "seq": 1, "t": 99.0, "frames": []}), "missing field 'u'"),
+    "shape": (msgpack.packb({"v": V, "seq": 1, "t": 99.0, "u": [0, 0], "frames": []}), "'u'"),
+    "nan": (msgpack.packb({"v": V, "seq": 1, "t": 99.0, "u": [0, math.nan, 0], "frames": []}), "NaN"),
     "camera": (
-        msgpack.packb({"v": 1, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": [[7, [1, 2, 3, 4, 0]]]}),
+        msgpack.packb({"v": V, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": [[7, [1, 2, 3, 4, 0]]]}),
         "camera",
     ),
     "huge": (
-        msgpack.packb({"v": 1, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": [], "pad": "x" * 70000}),
+        msgpack.packb({"v": V, "seq": 1, "t": 99.0, "u": [0, 0, 0], "frames": [], "pad": "x" * 70000}),
         "exceeds",
     ),
-    "late": (msgpack.packb({"v": 1, "seq": 1, "t": -5.0, "u": [0, 0, 0], "frames": []}), "session time"),
+    "late": (msgpack.packb({"v": V, "seq": 1, "t": -5.0, "u": [0, 0, 0], "frames": []}), "session time"),
 }
 
 
@@ -275,3 +277,19 @@ def test_kill_and_restart_is_detected_through_liveliness(models, flight) -> None
     sub.undeclare()
     session.close()
     assert svc2.stop() == 0
+
+
+def test_packed_arrays_round_trip_bit_exactly_and_wrong_lengths_are_named() -> None:
+    from estimator_service.service.protocol import ProtocolError, encode_belief, pack_array, parse_reset
+
+    rng = np.random.default_rng(3)
+    mean, a = rng.normal(size=12), rng.normal(size=(12, 12))
+    cov = a @ a.T + np.eye(12)
+    b = decode_belief(encode_belief("b1", 4, 1.0, mean, cov, "ekf", "gp", 2.5, 10, False, 1.0))
+    assert np.array_equal(b["mean"], mean) and np.array_equal(b["cov"], cov)
+    r = parse_reset({"v": V, "seq": 1, "t": 0.0, "mean": pack_array(mean), "cov": pack_array(cov)})
+    assert np.array_equal(r.mean, mean) and np.array_equal(r.cov, cov)
+    with pytest.raises(ProtocolError, match=r"field 'mean' must hold 12 little-endian float64 \(96 bytes\)"):
+        parse_reset({"v": V, "seq": 1, "t": 0.0, "mean": pack_array(mean[:11]), "std": [1.0] * 12})
+    with pytest.raises(ProtocolError, match="field 'mean' contains NaN"):
+        parse_reset({"v": V, "seq": 1, "t": 0.0, "mean": pack_array(np.full(12, np.nan)), "std": [1.0] * 12})

@@ -67,6 +67,7 @@ class EstimatorClient:
             f"gpbf/{blimp}/error", lambda s: self._errors.put(s.payload.to_bytes())
         )
         self._pubs: dict[str, Any] = {}
+        self._queriers: dict[str, Any] = {}
         self._lock = threading.Lock()
 
     def _next_seq(self) -> int:
@@ -79,7 +80,12 @@ class EstimatorClient:
     ) -> dict[str, Any]:
         """Send a query (``step``, ``reset``, ``status``) and decode its single reply."""
         payload = raw if raw is not None else (encode(message) if message is not None else None)
-        handler = self.session.get(f"gpbf/{self.blimp}/{kind}", payload=payload, timeout=self.timeout)
+        querier = self._queriers.get(kind)
+        if querier is None:  # declared once per key: a lock-step loop skips the per-query routing set-up
+            querier = self._queriers[kind] = self.session.declare_querier(
+                f"gpbf/{self.blimp}/{kind}", timeout=self.timeout
+            )
+        handler = querier.get(payload=payload)
         try:  # the first reply is the answer: no wait for the query's final message
             r = handler.recv()
         except zenoh.ZError:  # closed without a reply
@@ -182,6 +188,6 @@ class EstimatorClient:
         return out
 
     def close(self) -> None:
-        for d in (self._sub, self._err, *self._pubs.values()):
+        for d in (self._sub, self._err, *self._pubs.values(), *self._queriers.values()):
             if d is not None:
                 d.undeclare()

@@ -2,7 +2,9 @@
 
 Encoding: MessagePack maps. It is compact, fast in Python (a C extension) and has
 libraries in every language a robot stack uses; float64 values travel bit-exactly, which
-the lock-step mode needs. Every message carries ``v`` (:data:`PROTOCOL_VERSION`),
+the lock-step mode needs. Arrays may be lists of numbers or ``bin`` fields of row-major
+little-endian float64 (beliefs use the latter: no per-number objects to build or parse).
+Every message carries ``v`` (:data:`PROTOCOL_VERSION`),
 ``seq`` (int) and ``t`` (seconds, sim or wall time).
 
 Decoding validates everything and raises :class:`ProtocolError` naming the field and the
@@ -30,13 +32,15 @@ __all__ = [
     "decode",
     "encode",
     "encode_belief",
+    "pack_array",
     "parse_camera",
     "parse_control",
     "parse_reset",
     "parse_step",
+    "unpack_array",
 ]
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: arrays may travel as little-endian float64 bytes; beliefs do
 MAX_PAYLOAD = 64 * 1024  # bytes; anything larger is rejected unread
 MAX_CAMERAS = 16
 FILTERS = ("ekf", "ukf", "pf")
@@ -86,6 +90,16 @@ def _number(msg: dict[str, Any], name: str, integer: bool = False) -> float:
 
 
 def _vector(val: Any, name: str, size: int) -> FloatArray:
+    if isinstance(val, bytes):  # packed little-endian float64 (what beliefs use)
+        if len(val) != 8 * size:
+            raise ProtocolError(
+                f"field '{name}' must hold {size} little-endian float64 ({8 * size} bytes), "
+                f"got {len(val)} bytes"
+            )
+        arr = np.frombuffer(val, dtype="<f8").astype(np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise ProtocolError(f"field '{name}' contains NaN or Inf")
+        return arr
     if not isinstance(val, (list, tuple)) or len(val) != size:
         got = len(val) if isinstance(val, (list, tuple)) else type(val).__name__
         raise ProtocolError(f"field '{name}' must be a list of {size} numbers, got {got}")
@@ -212,15 +226,15 @@ def encode_belief(
     diverged: bool,
     step_ms: float,
 ) -> bytes:
-    """The belief message: mean, covariance (row-major flat), and the step report."""
+    """The belief message: mean, covariance (row-major, packed float64), and the step report."""
     return encode(
         {
             "v": PROTOCOL_VERSION,
             "blimp": blimp,
             "seq": int(seq),
             "t": float(t),
-            "mean": mean.tolist(),
-            "cov": cov.ravel().tolist(),
+            "mean": pack_array(mean),
+            "cov": pack_array(cov),
             "filter": filter_name,
             "model": model,
             "nis": None if math.isnan(nis) else float(nis),
@@ -231,10 +245,23 @@ def encode_belief(
     )
 
 
+def pack_array(a: FloatArray) -> bytes:
+    """An array as row-major little-endian float64 bytes (a MessagePack ``bin``)."""
+    return np.ascontiguousarray(a, dtype="<f8").tobytes()
+
+
+def unpack_array(val: bytes | list, shape: tuple[int, ...]) -> FloatArray:
+    """Inverse of :func:`pack_array` (lists of numbers are accepted too)."""
+    if isinstance(val, bytes):
+        return np.frombuffer(val, dtype="<f8").astype(np.float64).reshape(shape)
+    return np.asarray(val, dtype=np.float64).reshape(shape)
+
+
 def decode_belief(payload: bytes) -> dict[str, Any]:
-    """Belief message with ``mean (12,)`` and ``cov (12, 12)`` as arrays."""
+    """Belief message with ``mean (n,)`` and ``cov (n, n)`` as arrays."""
     msg = decode(payload)
-    n = len(msg["mean"])
-    msg["mean"] = np.asarray(msg["mean"], dtype=np.float64)
-    msg["cov"] = np.asarray(msg["cov"], dtype=np.float64).reshape(n, n)
+    mean = msg["mean"]
+    n = len(mean) // 8 if isinstance(mean, bytes) else len(mean)
+    msg["mean"] = unpack_array(mean, (n,))
+    msg["cov"] = unpack_array(msg["cov"], (n, n))
     return msg

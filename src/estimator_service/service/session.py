@@ -120,7 +120,7 @@ def step_together(batch: list[tuple[Session, tuple]]) -> None:
             )
     except Exception:  # fall back: each job alone, with its own error handling
         for s, job, _ in ready:
-            s._run_one(*job)
+            s._answer(job, lambda s=s, job=job: s._handle(job[0], job[1], job[3]))
             s._close_job(job)
         return
     for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
@@ -208,6 +208,10 @@ class Session:
                     return
                 job = self._pending.popleft()
             self._run_one(*job)
+        self._reschedule()
+
+    def _reschedule(self) -> None:
+        """After a worker's turn: back on the ready queue if more inputs wait."""
         with self._lock:
             again = bool(self._pending)
             self._scheduled = again
@@ -245,11 +249,7 @@ class Session:
         """After a batched job: release its query; back on the ready queue if more wait."""
         if job[2] is not None:
             job[2].drop()
-        with self._lock:
-            again = bool(self._pending)
-            self._scheduled = again
-        if again:
-            self.pool.schedule(self)
+        self._reschedule()
 
     def _reject(self, text: str, kind: str, query: Any) -> None:
         self.rejected += 1
