@@ -3,6 +3,11 @@
 Prediction data (paper eq. 12): ``[x_k, u_k] -> x_{k+1} - x_k`` (Euler-angle changes
 wrapped). Observation data (eq. 13), one model per camera: ``x_k -> ellipse_k`` over the
 frames that camera delivered. Both are subsampled to ``n_points`` (paper: ~900).
+
+The ``egp`` and ``hetgp`` kinds model the residual of the parametric models (eq. 16).
+Every GP sees the yaw as ``(cos, sin)`` (it wraps at +-pi; roll and pitch stay small), and
+the observation GPs other than the enhanced one regress the ellipse orientation (period pi)
+as a unit vector: see :mod:`estimator_service.gp.circular`.
 """
 
 from __future__ import annotations
@@ -17,14 +22,24 @@ from numpy.typing import NDArray
 
 from agents.recorder import Flight
 from agents.tracking import wrap_angle
-from estimator_service.factory import MODEL_KINDS, save_parametric
-from estimator_service.gp import Progress, fit_enhanced, fit_exact, fit_hetero, fit_sparse, save_gp
+from estimator_service.factory import ENHANCED_KINDS, MODEL_KINDS, save_parametric
+from estimator_service.gp import (
+    Progress,
+    fit_circular,
+    fit_enhanced,
+    fit_exact,
+    fit_hetero,
+    fit_sparse,
+    save_gp,
+)
 from estimator_service.models.blimp import BlimpODE, fit_blimp_ode
 from estimator_service.models.camera import CameraModel, PinholeCalibration, fit_camera_model
 
 __all__ = ["TrainSettings", "calibrations", "prediction_data", "train_models"]
 
 FloatArray = NDArray[np.float64]
+YAW = (5,)  # angle inputs that wrap
+ELLIPSE_ANGLE = 4  # the ellipse orientation's column, period pi
 
 
 @dataclass(frozen=True)
@@ -156,18 +171,25 @@ def train_models(
             if on_progress:
                 on_progress(kind, p)
 
-        fit = _fitter(kind, settings, rng, cb)
+        base = _fitter(kind, settings, rng, cb)
+
+        def fit(x: FloatArray, y: FloatArray, base: Callable = base) -> object:
+            return fit_circular(x, y, base, angle_inputs=YAW)
+
+        def fit_obs(x: FloatArray, y: FloatArray, base: Callable = base) -> object:
+            return fit_circular(x, y, base, angle_inputs=YAW, angle_output=ELLIPSE_ANGLE, period=np.pi)
+
         x, y = inp[rows], change[rows]
-        if kind == "egp":
+        if kind in ENHANCED_KINDS:
             pred = fit_enhanced(x, y, lambda q: ode.change(q[:, :12], q[:, 12:]), fit)
         else:
             pred = fit(x, y)
         save_gp(pred, out / f"prediction_{kind}.npz")
         for k, (xs, zs) in enumerate(obs_sets):
-            if kind == "egp":
+            if kind in ENHANCED_KINDS:
                 obs = fit_enhanced(xs, zs, lambda q, k=k: cam.mean(q)[:, 5 * k : 5 * k + 5], fit)
             else:
-                obs = fit(xs, zs)
+                obs = fit_obs(xs, zs)
             save_gp(obs, out / f"observation_{kind}_cam{k}.npz")
         timings[kind] = time.perf_counter() - t0
         if on_progress:

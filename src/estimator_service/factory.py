@@ -40,6 +40,9 @@ __all__ = [
 
 FILTER_KINDS = ("ukf", "ekf", "pf")
 MODEL_KINDS = ("param", "gp", "egp", "hetgp", "sparse")
+#: kinds whose GPs model the residual of the parametric models (paper eq. 16); the
+#: heteroscedastic GP is one of them, as the paper's Tables 7-8 rank it above the EGP.
+ENHANCED_KINDS = ("egp", "hetgp")
 STATE_DIM = 12
 
 
@@ -95,7 +98,7 @@ def load_models(model_dir: str | os.PathLike[str], kind: str) -> tuple[Predictio
     if kind == "param":
         return ode, cam
     extra_p = {}
-    if kind == "egp":
+    if kind in ENHANCED_KINDS:
         extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
     pred = load_gp(folder / f"prediction_{kind}.npz", **extra_p)
     return GPPredictionModel(pred, STATE_DIM), _observation(folder, kind, cam)
@@ -105,10 +108,16 @@ def _observation(folder: Path, kind: str, cam: CameraModel) -> ObservationModel:
     """One file for all cameras, or one ``observation_<kind>_cam<k>.npz`` per camera."""
     single = folder / f"observation_{kind}.npz"
     if single.exists():
-        return GPObservationModel(load_gp(single, **({"mean_function": cam.mean} if kind == "egp" else {})))
+        return GPObservationModel(
+            load_gp(single, **({"mean_function": cam.mean} if kind in ENHANCED_KINDS else {}))
+        )
     parts = []
     for k in range(len(cam.cameras)):
-        extra = {"mean_function": lambda x, k=k: cam.mean(x)[:, 5 * k : 5 * k + 5]} if kind == "egp" else {}
+        extra = (
+            {"mean_function": lambda x, k=k: cam.mean(x)[:, 5 * k : 5 * k + 5]}
+            if kind in ENHANCED_KINDS
+            else {}
+        )
         parts.append(GPObservationModel(load_gp(folder / f"observation_{kind}_cam{k}.npz", **extra)))
     return StackedObservationModel(tuple(parts))
 

@@ -3,10 +3,12 @@
 Four kinds, one batched interface (:class:`GPModel.predict` -> :class:`GPPrediction`):
 :class:`ExactGP` (:func:`fit_exact`), :class:`SparseGP` (:func:`fit_sparse`),
 :class:`HeteroscedasticGP` (:func:`fit_hetero`) and :class:`EnhancedGP`
-(:func:`fit_enhanced`). :func:`save_gp` / :func:`load_gp` persist any of them.
+(:func:`fit_enhanced`); :class:`CircularGP` (:func:`fit_circular`) wraps any of them so that
+angles enter and leave on the circle. :func:`save_gp` / :func:`load_gp` persist any of them.
 """
 
 from estimator_service.gp.base import GPModel, GPPrediction, Progress, Scaler
+from estimator_service.gp.circular import CircularGP, fit_circular
 from estimator_service.gp.enhanced import EnhancedGP, fit_enhanced, numeric_jacobian
 from estimator_service.gp.exact import ExactGP, exact_nll, fit_exact
 from estimator_service.gp.hetero import HeteroscedasticGP, fit_hetero
@@ -15,6 +17,7 @@ from estimator_service.gp.sparse import SparseGP, fit_sparse, sparse_nll
 
 __all__ = [
     "FORMAT_VERSION",
+    "CircularGP",
     "EnhancedGP",
     "ExactGP",
     "GPModel",
@@ -25,6 +28,7 @@ __all__ = [
     "Scaler",
     "SparseGP",
     "exact_nll",
+    "fit_circular",
     "fit_enhanced",
     "fit_exact",
     "fit_hetero",

@@ -1,10 +1,11 @@
 """Save and load fitted GPs as single ``.npz`` files (no pickle).
 
 Layout: ``__format__`` (int, :data:`FORMAT_VERSION`), ``__kind__`` (``exact``, ``sparse``,
-``hetero`` or ``enhanced``) and the model's arrays; nested models (hetero: ``main/``,
-``noise/``; enhanced: ``residual/``) use key prefixes. Files are written to a temporary
-name in the same folder and renamed, so a crash never leaves a half-written model. An
-enhanced GP's parametric mean function is code, not data: pass it to :func:`load_gp`.
+``hetero``, ``enhanced`` or ``circular``) and the model's arrays; nested models (hetero:
+``main/``, ``noise/``; enhanced: ``residual/``; circular: ``inner/``) use key prefixes.
+Files are written to a temporary name in the same folder and renamed, so a crash never
+leaves a half-written model. An enhanced GP's parametric mean function is code, not data:
+pass it to :func:`load_gp`.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.gp.base import GPModel, Scaler
+from estimator_service.gp.circular import CircularGP
 from estimator_service.gp.enhanced import EnhancedGP, JacobianFunction, MeanFunction
 from estimator_service.gp.exact import ExactGP
 from estimator_service.gp.hetero import HeteroscedasticGP
@@ -57,6 +59,10 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
         out |= _to_arrays(model.main, f"{prefix}main/") | _to_arrays(model.noise, f"{prefix}noise/")
     elif isinstance(model, EnhancedGP):
         out |= _to_arrays(model.residual, f"{prefix}residual/")
+    elif isinstance(model, CircularGP):
+        out[f"{prefix}angle_inputs"] = np.asarray(model.angle_inputs, dtype=np.float64)
+        out[f"{prefix}angle_output"] = np.array([model.angle_output, model.period], dtype=np.float64)
+        out |= _to_arrays(model.inner, f"{prefix}inner/")
     else:
         raise TypeError(f"cannot save a {type(model).__name__}")
     return out
@@ -150,7 +156,22 @@ def _from_arrays(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> GP
         if mean_fn is None:
             raise ModelFileError(f"{where}: an enhanced GP needs its parametric mean_function to load")
         return EnhancedGP(mean_fn, _from_arrays(data, f"{prefix}residual/", where, None, None), mean_jac)
+    if kind == "circular":
+        return _circular(data, prefix, where, mean_fn, mean_jac)
     raise ModelFileError(f"{where}: unknown model kind {kind!r}")
+
+
+def _circular(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> CircularGP:
+    angles = _get(data, f"{prefix}angle_inputs", 1, where)
+    meta = _get(data, f"{prefix}angle_output", 1, where)
+    _expect(meta.shape == (2,), where, f"angle_output must hold (column, period), got {meta.shape}")
+    out, period = meta
+    inner = _from_arrays(data, f"{prefix}inner/", where, mean_fn, mean_jac)
+    a = tuple(int(v) for v in angles)
+    d, p = inner.input_dim - len(a), inner.output_dim - (1 if out >= 0 else 0)
+    _expect(all(0 <= i < d for i in a) and len(set(a)) == len(a), where, f"angle_inputs {a} with d = {d}")
+    _expect(-1 <= out < p and period > 0, where, f"angle_output {out} (P = {p}), period {period}")
+    return CircularGP(inner, a, int(out), float(period))
 
 
 def load_gp(
