@@ -12,6 +12,8 @@ import pytest
 from agents.cli import main as gpbf
 from agents.pilots import make_pilot
 from agents.recorder import collect_flight, load_flight, save_flight
+from estimator_service.factory import load_models
+from estimator_service.gp import CircularGP, EnhancedGP
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +102,10 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
         "observation_egp_cam1.npz",
         "observation_gp_cam0.npz",
     ]
+    kinds = {k: load_models(m, k) for k in ("gp", "hetgp", "sparse")}
+    assert isinstance(kinds["hetgp"][0].gp, EnhancedGP)  # hetGP models the parametric residual
+    assert isinstance(kinds["gp"][0].gp, CircularGP) and isinstance(kinds["sparse"][0].gp, CircularGP)
+    assert kinds["gp"][1].parts[0].gp.angle_output == 4  # the ellipse orientation is circular
     capsys.readouterr()
     assert (
         gpbf(
