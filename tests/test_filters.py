@@ -105,7 +105,7 @@ def test_sigma_points_reproduce_mean_and_covariance(n: int) -> None:
     belief = GaussianBelief(rng.normal(size=n), a @ a.T + np.eye(n))
     pred = LinearGaussianPrediction(np.eye(n), np.zeros((n, 1)), np.ones(n))
     ukf = UKF(pred, LinearGaussianObservation(np.eye(n), np.ones(n)))
-    wm, wc, _ = sigma_weights(n, 1e-3, 2.0, 0.0)
+    wm, wc, _ = sigma_weights(n, ukf.alpha, ukf.beta, ukf.kappa)
     assert wm.sum() == pytest.approx(1.0, abs=1e-9)
     x = ukf.sigma_points(belief)
     np.testing.assert_allclose(wm @ x, belief.mean, atol=1e-8)
