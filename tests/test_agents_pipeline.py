@@ -144,13 +144,21 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
         particles=50,
         kinds=("param", "gp", "egp", "sparse"),
         landmark=False,
+        pf_seconds=5,
+        fig3_repeats=1,
+        fig3_smallest=20,
+        fig3_pseudo=(4,),
     )
     res = reproduce(tmp_path, s, progress=False)
     report = (tmp_path / "report.md").read_text()
-    for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 4", "orderings"):
+    for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 3", "Fig. 4", "orderings"):
         assert heading in report
     assert set(res["tracking"]) == {f"{f}/{k}" for f in ("ukf", "ekf", "pf") for k in s.kinds}
-    assert (tmp_path / "fig4_left_turns.png").exists()
+    assert res["tracking"]["pf/gp"]["steps"] == [20, 0] and res["tracking"]["ekf/gp"]["steps"] == [80, 0]
+    assert set(res["fig3"]["points"]) == {"20", "40"} and set(res["fig3"]["pseudo"]) == {"4"}
+    fig3 = res["fig3"]["points"]["40"]["ukf"]
+    assert 0 <= fig3["outside_3sigma"][0] <= 1 and np.isfinite(fig3["aggregate_rms"][0])
+    assert (tmp_path / "fig4_left_turns.png").exists() and (tmp_path / "fig3_training_points.png").exists()
     train, test = split_folds(collect_flight(20, seed=0), 2)[1]
     assert len(train.transition_rows()) == len(train) - 1 and len(test) == 40
 

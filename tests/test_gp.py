@@ -139,6 +139,34 @@ def test_learning_recovers_length_scales_and_noise() -> None:
     assert learned_sn == pytest.approx(sn, rel=0.2)
 
 
+
+def test_subset_hyperparameters_with_polish_match_the_full_optimum() -> None:
+    """Learning on 150 of 400 points then polishing on all lands near the all-points optimum."""
+    rng = np.random.default_rng(6)
+    n, ell, sn = 400, np.array([0.6, 2.5]), 0.1
+    x = rng.uniform(-3, 3, (n, 2))
+    k = se_kernel(x, x, ell, 1.0) + 1e-8 * np.eye(n)
+    y = np.linalg.cholesky(k) @ rng.normal(size=n) + sn * rng.normal(size=n)
+    full = fit_exact(x, y, restarts=2, rng=np.random.default_rng(0))
+    sub = fit_exact(x, y, restarts=2, rng=np.random.default_rng(0), hyper_points=150, polish_iter=30)
+    ys = (y - full.y_scaler.mean) / full.y_scaler.std
+    xs = full.x_scaler.apply(x)
+    nll_full = exact_nll(full.theta[0], xs, ys[:, 0] if ys.ndim == 2 else ys)[0]
+    nll_sub = exact_nll(sub.theta[0], xs, ys[:, 0] if ys.ndim == 2 else ys)[0]
+    assert nll_sub == pytest.approx(nll_full, abs=0.5)
+    assert sub.x_train.shape == (n, 2)  # the posterior uses every point
+
+
+def test_cholesky_inverse_matches_solve() -> None:
+    from estimator_service.gp.linalg import chol_inverse
+
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(30, 30))
+    k = a @ a.T + 30 * np.eye(30)
+    inv = chol_inverse(np.linalg.cholesky(k))
+    np.testing.assert_allclose(inv, np.linalg.solve(k, np.eye(30)), rtol=1e-10, atol=1e-13)
+    np.testing.assert_array_equal(inv, inv.T)
+
 # -- sparse, heteroscedastic, enhanced ---------------------------------------------------
 def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy) -> None:
     x, y = toy

@@ -125,10 +125,26 @@ def write_report(out: Path, res: dict) -> Path:
         "",
         f"{s['minutes']:.0f} minutes of scripted flight, {s['folds']}-fold cross-validation over contiguous "
         f"blocks, {s['points']} GP training points, {s['pseudo']} pseudo-inputs, PF with {s['particles']} "
-        f"particles, tracking segments of {s['track_seconds']:.0f} s. Raw numbers: `results.json`.",
+        f"particles (first {s.get('pf_seconds', s['track_seconds']):.0f} s of each segment), tracking "
+        f"segments of {s['track_seconds']:.0f} s. Raw numbers: `results.json`.",
         "",
     ]
     lines += _table5(res) + _tables7_9(res)
+    if res.get("fig3"):
+        from agents.fig3 import describe
+
+        lines += [
+            "## Fig. 3: tracking against the amount of training data (first fold)",
+            "",
+            "Random subsets of the training points for exact GPs (dashed) and sparse GPs with "
+            "that many pseudo-inputs trained on all points (solid); means over repeats and "
+            "tracking segments.",
+            "",
+            "![fig3](fig3_training_points.png)",
+            "",
+            *describe(res["fig3"]),
+            "",
+        ]
     lines += [
         "## Fig. 4: no training data with the tail fan pushing left",
         "",

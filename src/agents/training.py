@@ -56,6 +56,10 @@ class TrainSettings:
         Hyperparameter optimisation effort of the exact GPs.
     hetero_iterations
         EM-like rounds of the heteroscedastic GPs.
+    hyper_points, polish_iter
+        Exact and heteroscedastic GPs learn hyperparameters on a random subset of
+        ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
+        (None: all points from the start); see :func:`~estimator_service.gp.fit_exact`.
     """
 
     n_points: int = 900
@@ -63,6 +67,8 @@ class TrainSettings:
     restarts: int = 2
     max_iter: int = 100
     hetero_iterations: int = 2
+    hyper_points: int | None = 300
+    polish_iter: int = 15
 
 
 def prediction_data(flights: Sequence[Flight]) -> tuple[FloatArray, FloatArray]:
@@ -119,12 +125,11 @@ def train_parametric(flights: Sequence[Flight]) -> tuple[BlimpODE, CameraModel]:
 
 def _fitter(kind: str, s: TrainSettings, rng: np.random.Generator, cb) -> Callable:
     common = {"rng": rng, "callback": cb}
+    exact = {"max_iter": s.max_iter, "hyper_points": s.hyper_points, "polish_iter": s.polish_iter}
     if kind in ("gp", "egp"):
-        return lambda x, y: fit_exact(x, y, restarts=s.restarts, max_iter=s.max_iter, **common)
+        return lambda x, y: fit_exact(x, y, restarts=s.restarts, **exact, **common)
     if kind == "hetgp":
-        return lambda x, y: fit_hetero(
-            x, y, iterations=s.hetero_iterations, restarts=1, max_iter=s.max_iter, **common
-        )
+        return lambda x, y: fit_hetero(x, y, iterations=s.hetero_iterations, restarts=1, **exact, **common)
     return lambda x, y: fit_sparse(x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=2 * s.max_iter, **common)
 
 

