@@ -139,7 +139,6 @@ def test_learning_recovers_length_scales_and_noise() -> None:
     assert learned_sn == pytest.approx(sn, rel=0.2)
 
 
-
 def test_subset_hyperparameters_with_polish_match_the_full_optimum() -> None:
     """Learning on 150 of 400 points then polishing on all lands near the all-points optimum."""
     rng = np.random.default_rng(6)
@@ -166,6 +165,7 @@ def test_cholesky_inverse_matches_solve() -> None:
     inv = chol_inverse(np.linalg.cholesky(k))
     np.testing.assert_allclose(inv, np.linalg.solve(k, np.eye(30)), rtol=1e-10, atol=1e-13)
     np.testing.assert_array_equal(inv, inv.T)
+
 
 # -- sparse, heteroscedastic, enhanced ---------------------------------------------------
 def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy) -> None:

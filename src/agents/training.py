@@ -56,6 +56,11 @@ class TrainSettings:
         Hyperparameter optimisation effort of the exact GPs.
     hetero_iterations
         EM-like rounds of the heteroscedastic GPs.
+    sparse_iter
+        Optimiser iterations of the sparse GPs (hyperparameters and ``n_pseudo * d``
+        pseudo-input coordinates). More is not better here: on a held-out blimp block the
+        sparse GP-EKF scored aggregate RMS 14.6, 12.3, 13.2 and 13.3 after 60, 120, 200
+        and 500 iterations while the marginal likelihood kept improving.
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
@@ -67,6 +72,7 @@ class TrainSettings:
     restarts: int = 2
     max_iter: int = 100
     hetero_iterations: int = 2
+    sparse_iter: int = 120
     hyper_points: int | None = 300
     polish_iter: int = 15
 
@@ -130,7 +136,7 @@ def _fitter(kind: str, s: TrainSettings, rng: np.random.Generator, cb) -> Callab
         return lambda x, y: fit_exact(x, y, restarts=s.restarts, **exact, **common)
     if kind == "hetgp":
         return lambda x, y: fit_hetero(x, y, iterations=s.hetero_iterations, restarts=1, **exact, **common)
-    return lambda x, y: fit_sparse(x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=2 * s.max_iter, **common)
+    return lambda x, y: fit_sparse(x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=s.sparse_iter, **common)
 
 
 def train_models(
