@@ -126,12 +126,20 @@ def test_variance_grows_in_a_gap_of_the_data() -> None:
     assert var[3] > 5 * var[0] and var[3] > 5 * var[4]
 
 
+ELL, SN = np.array([0.6, 2.5]), 0.1
+
+
+def gp_sample(rng: np.random.Generator, n: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` noisy draws from a GP with length scales ``ELL`` and noise ``SN`` on [-3, 3]^2."""
+    x = rng.uniform(-3, 3, (n, 2))
+    k = se_kernel(x, x, ELL, 1.0) + 1e-8 * np.eye(n)
+    return x, np.linalg.cholesky(k) @ rng.normal(size=n) + SN * rng.normal(size=n)
+
+
 def test_learning_recovers_length_scales_and_noise() -> None:
     rng = np.random.default_rng(6)
-    n, ell, sn = 400, np.array([0.6, 2.5]), 0.1
-    x = rng.uniform(-3, 3, (n, 2))
-    k = se_kernel(x, x, ell, 1.0) + 1e-8 * np.eye(n)
-    y = np.linalg.cholesky(k) @ rng.normal(size=n) + sn * rng.normal(size=n)
+    x, y = gp_sample(rng)
+    ell, sn = ELL, SN
     gp = fit_exact(x, y, restarts=3, rng=rng)
     learned_ell = np.exp(gp.theta[0, :2]) * gp.x_scaler.std
     learned_sn = math.sqrt(gp.noise_var[0])
@@ -141,11 +149,7 @@ def test_learning_recovers_length_scales_and_noise() -> None:
 
 def test_subset_hyperparameters_with_polish_match_the_full_optimum() -> None:
     """Learning on 150 of 400 points then polishing on all lands near the all-points optimum."""
-    rng = np.random.default_rng(6)
-    n, ell, sn = 400, np.array([0.6, 2.5]), 0.1
-    x = rng.uniform(-3, 3, (n, 2))
-    k = se_kernel(x, x, ell, 1.0) + 1e-8 * np.eye(n)
-    y = np.linalg.cholesky(k) @ rng.normal(size=n) + sn * rng.normal(size=n)
+    x, y = gp_sample(np.random.default_rng(6))
     full = fit_exact(x, y, restarts=2, rng=np.random.default_rng(0))
     sub = fit_exact(x, y, restarts=2, rng=np.random.default_rng(0), hyper_points=150, polish_iter=30)
     ys = (y - full.y_scaler.mean) / full.y_scaler.std
@@ -153,7 +157,7 @@ def test_subset_hyperparameters_with_polish_match_the_full_optimum() -> None:
     nll_full = exact_nll(full.theta[0], xs, ys[:, 0] if ys.ndim == 2 else ys)[0]
     nll_sub = exact_nll(sub.theta[0], xs, ys[:, 0] if ys.ndim == 2 else ys)[0]
     assert nll_sub == pytest.approx(nll_full, abs=0.5)
-    assert sub.x_train.shape == (n, 2)  # the posterior uses every point
+    assert sub.x_train.shape == (400, 2)  # the posterior uses every point
 
 
 def test_cholesky_inverse_matches_solve() -> None:

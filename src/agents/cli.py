@@ -54,7 +54,15 @@ def _train(args: argparse.Namespace) -> int:
     from agents.training import TrainSettings, train_models
 
     flights = [load_flight(p) for p in args.flights]
-    settings = TrainSettings(args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations)
+    settings = TrainSettings(
+        args.points,
+        args.pseudo,
+        args.restarts,
+        args.max_iter,
+        args.hetero_iterations,
+        sparse_iter=args.sparse_iter,
+        hyper_points=args.hyper_points or None,
+    )
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     bars: dict[str, tqdm] = {}
 
@@ -200,6 +208,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--restarts", type=int, default=2, help="optimiser restarts per exact GP output")
     t.add_argument("--max-iter", type=int, default=100, help="L-BFGS-B iterations per restart")
     t.add_argument("--hetero-iterations", type=int, default=2, help="EM rounds of the heteroscedastic GPs")
+    t.add_argument(
+        "--sparse-iter", type=int, default=120, help="L-BFGS-B iterations of each sparse GP output"
+    )
+    t.add_argument(
+        "--hyper-points",
+        type=int,
+        default=300,
+        help="exact GPs learn hyperparameters on this many random points, then polish them on "
+        "all (0: on all points from the start)",
+    )
     t.add_argument("--seed", type=int, default=0, help="seed of the subsampling and restarts")
     t.set_defaults(func=_train)
 
