@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from agents.plots import write_text_atomic
 from agents.recorder import collect_flight
 from agents.rl import AgentSpec, evaluate_agent, train_agent
 from agents.training import TrainSettings, train_models
@@ -88,7 +89,7 @@ def run(
     for (task, variant, _), fut in zip(todo, futures, strict=True):
         results.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     meta = {"timesteps": timesteps, "seeds": seeds, "episodes": episodes, "model": model, "points": points}
-    (out / "results.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2))
+    write_text_atomic(out / "results.json", json.dumps({"meta": meta, "results": results}, indent=2))
     write_report(out, results, meta)
     return results
 
@@ -135,7 +136,7 @@ def write_report(out: Path, results: dict, meta: dict) -> None:
     fig.tight_layout()
     save_figure(fig, out / "returns.png")
     lines += ["", "![returns](returns.png)", ""]
-    (out / "report.md").write_text("\n".join(lines))
+    write_text_atomic(out / "report.md", "\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -20,6 +21,7 @@ from scipy.stats import chi2
 from tqdm import tqdm
 
 from agents.landmark import run_landmark_experiment
+from agents.plots import write_text_atomic
 from agents.recorder import Flight, collect_flight
 from agents.tracking import aggregate_rms, group_rms, state_error, track_flight
 from agents.training import TrainSettings, prediction_data, train_models
@@ -118,8 +120,6 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
 
 def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
     """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
-    from agents.plots import save_figure
-
     reduced = out / "models_no_left_turns"
     settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
     train_models(
@@ -130,37 +130,48 @@ def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, o
         seed=s.seed,
         exclude=lambda inp: inp[:, 14] > 0.3,
     )
-    left = test.control[:-1, 2] > 0.3
-    res = {}
+    return plot_fig4(folder_full, reduced, test, out / "fig4_left_turns.png")
+
+
+def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dict[str, float]:
+    """GP-UKF yaw error with its 3-sigma band, all data vs no left-turn data; the figures."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    from agents.plots import save_figure
+
+    left = test.control[:-1, 2] > 0.3
+    res, lim = {}, 0.0
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True, sharey=True)
     for ax, (name, folder) in zip(
         axes, (("full data", folder_full), ("no left turns", reduced)), strict=True
     ):
         r = track_flight(build_filter("ukf", "gp", folder), test)
         t = np.arange(len(r.mean)) * 0.25
-        sd = np.sqrt(r.cov[:, 5, 5])
-        est = r.truth[:, 5] + r.error[:, 5]
-        ax.fill_between(t, -4, 4, where=left[: len(t)], color="0.85", lw=0)
-        ax.fill_between(t, est - 3 * sd, est + 3 * sd, color="tab:blue", alpha=0.3, lw=0)
-        ax.plot(t, r.truth[:, 5], "k", lw=1)
-        ax.plot(t, est, "r--", lw=1)
-        ax.set(ylabel="yaw (rad)", title=f"GP-UKF, {name} (shaded: tail pushing left)", ylim=(-3.5, 3.5))
-        inside = np.abs(r.error[:, 5]) <= 3 * sd
+        sd = np.degrees(np.sqrt(r.cov[:, 5, 5]))
+        err = np.degrees(r.error[:, 5])
         m = left[: len(t)]
-        res[f"{name}: yaw std in left turns (deg)"] = float(np.degrees(sd[m].mean())) if m.any() else math.nan
-        res[f"{name}: yaw std elsewhere (deg)"] = float(np.degrees(sd[~m].mean()))
+        lim = max(lim, 1.2 * max(3 * sd.max(), np.abs(err).max()))
+        ax.fill_between(t, -1e3, 1e3, where=m, color="0.85", lw=0)
+        ax.fill_between(t, -3 * sd, 3 * sd, color="tab:blue", alpha=0.4, lw=0, label=r"$\pm 3\sigma$")
+        ax.plot(t, err, "r", lw=0.8, label="estimate - truth")
+        ax.set(ylabel="yaw error (deg)", title=f"GP-UKF, {name} (shaded: tail pushing left)")
+        inside = np.abs(err) <= 3 * sd
+        res[f"{name}: yaw std in left turns (deg)"] = float(sd[m].mean()) if m.any() else math.nan
+        res[f"{name}: yaw std elsewhere (deg)"] = float(sd[~m].mean())
         res[f"{name}: truth within 3 sigma"] = float(inside.mean())
+        res[f"{name}: truth within 3 sigma in left turns"] = float(inside[m].mean()) if m.any() else math.nan
+    axes[0].set_ylim(-lim, lim)
+    axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
-    save_figure(fig, out / "fig4_left_turns.png")
+    save_figure(fig, path)
     return res
 
 
 def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     """Run everything and write ``report.md`` and figures into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
     flight = collect_flight(s.minutes * 60, seed=s.seed)
     folds = split_folds(flight, s.folds)
     table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
@@ -187,7 +198,8 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
         "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
     }
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    results["wall_s"] = time.perf_counter() - t0
+    write_text_atomic(out / "results.json", json.dumps(results, indent=2))
     from agents.report import write_report
 
     write_report(out, results)
