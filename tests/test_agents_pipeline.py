@@ -14,6 +14,7 @@ from agents.pilots import make_pilot
 from agents.recorder import collect_flight, load_flight, save_flight
 from estimator_service.factory import load_models
 from estimator_service.gp import CircularGP, EnhancedGP
+from estimator_service.models.calibration import NoiseScaledPrediction, read_noise_scales
 
 
 @pytest.fixture(scope="module")
@@ -103,8 +104,14 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
         "observation_gp_cam0.npz",
     ]
     kinds = {k: load_models(m, k) for k in ("gp", "hetgp", "sparse")}
-    assert isinstance(kinds["hetgp"][0].gp, EnhancedGP)  # hetGP models the parametric residual
-    assert isinstance(kinds["gp"][0].gp, CircularGP) and isinstance(kinds["sparse"][0].gp, CircularGP)
+    scales = read_noise_scales(m)  # every kind got a process-noise scale from the flight
+    assert set(scales) == {"param", "gp", "egp", "hetgp", "sparse"}
+    pred = {k: v[0] for k, v in kinds.items()}
+    for k, p in pred.items():
+        assert isinstance(p, NoiseScaledPrediction) == (scales[k] != 1.0)
+    gps = {k: getattr(p, "inner", p).gp for k, p in pred.items()}
+    assert isinstance(gps["hetgp"], EnhancedGP)  # hetGP models the parametric residual
+    assert isinstance(gps["gp"], CircularGP) and isinstance(gps["sparse"], CircularGP)
     assert kinds["gp"][1].parts[0].gp.angle_output == 4  # the ellipse orientation is circular
     capsys.readouterr()
     assert (

