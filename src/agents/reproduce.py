@@ -27,6 +27,7 @@ from agents.tracking import aggregate_rms, group_rms, state_error, track_flight
 from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 from estimator_service.gp.linalg import single_threaded_blas
+from estimator_service.models.calibration import read_noise_scales
 
 __all__ = ["ReproduceSettings", "reproduce", "split_folds"]
 
@@ -198,6 +199,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
         "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
     }
+    results["noise_scales"] = [read_noise_scales(out / f"models_fold{i}") for i in range(len(folds))]
     results["wall_s"] = time.perf_counter() - t0
     write_text_atomic(out / "results.json", json.dumps(results, indent=2))
     from agents.report import write_report
