@@ -20,6 +20,10 @@ EXPECTED = {
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",
     },
     "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
+    "bench_training.py": {
+        "exact_nll_ms_default_threads", "exact_nll_ms_one_thread", "potri_speedup",
+        "subset_fit_speedup", "subset_to_full_rms_ratio",
+    },
     "bench_gp.py": {
         "batch_mean_var_s", "achieved_gflops", "matmul_gflops", "speedup_vs_sklearn",
         "one_query_ms", "25_queries_ms",
