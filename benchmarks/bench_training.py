@@ -17,27 +17,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
-from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import scipy.linalg as sla
 from threadpoolctl import threadpool_limits
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_gp import best_time
+
 from estimator_service.gp import exact_nll, fit_exact, sparse_nll
 from estimator_service.gp.linalg import chol_inverse
 
 N, D, M = 900, 16, 50
-
-
-def best_time(fn: Callable[[], object], repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
 
 
 def data(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:

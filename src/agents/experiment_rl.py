@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from agents.plots import write_text_atomic
 from agents.recorder import collect_flight
 from agents.rl import AgentSpec, evaluate_agent, train_agent
 from agents.training import TrainSettings, train_models
 from agents.wrappers import VARIANTS
+from estimator_service.gp.io import atomic_write_text
 
 __all__ = ["main", "run"]
 
@@ -47,9 +47,7 @@ def _job(task: str, variant: str, seed: int, model: str, models: Path, out: Path
             progress_bar=False,
         )
         res = evaluate_agent(path, episodes=cfg["episodes"], seed=5000)
-    tmp = done.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res))
-    tmp.replace(done)
+    atomic_write_text(done, json.dumps(res))
     return res
 
 
@@ -89,7 +87,7 @@ def run(
     for (task, variant, _), fut in zip(todo, futures, strict=True):
         results.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     meta = {"timesteps": timesteps, "seeds": seeds, "episodes": episodes, "model": model, "points": points}
-    write_text_atomic(out / "results.json", json.dumps({"meta": meta, "results": results}, indent=2))
+    atomic_write_text(out / "results.json", json.dumps({"meta": meta, "results": results}, indent=2))
     write_report(out, results, meta)
     return results
 
@@ -136,7 +134,7 @@ def write_report(out: Path, results: dict, meta: dict) -> None:
     fig.tight_layout()
     save_figure(fig, out / "returns.png")
     lines += ["", "![returns](returns.png)", ""]
-    write_text_atomic(out / "report.md", "\n".join(lines))
+    atomic_write_text(out / "report.md", "\n".join(lines))
 
 
 def main(argv: list[str] | None = None) -> int:

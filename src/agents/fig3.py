@@ -13,12 +13,13 @@ from __future__ import annotations
 import math
 import tempfile
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from agents.recorder import Flight
-from agents.tracking import aggregate_rms, track_flight
+from agents.tracking import aggregate_rms, mean_sd, segments, track_flight
 from agents.training import TrainSettings, train_models
 from estimator_service.factory import build_filter
 
@@ -36,13 +37,12 @@ def size_levels(full: int, smallest: int) -> list[int]:
     return sorted(out)
 
 
-def _track(folder: Path, test: Flight, seg: int) -> dict[str, dict[str, float]]:
-    rows = [slice(a, a + seg) for a in range(0, len(test) - seg + 1, seg)] or [slice(None)]
+def _track(folder: Path, kind: str, test: Flight, seg: int) -> dict[str, dict[str, float]]:
     res = {}
     for filt in FILTERS:
-        f = build_filter(filt, "sparse" if (folder / "prediction_sparse.npz").exists() else "gp", folder)
+        f = build_filter(filt, kind, folder)
         runs = []
-        for r in rows:
+        for r in segments(len(test), seg):
             sc = track_flight(f, test, rows=r).scores()
             sc["aggregate_rms"] = aggregate_rms(sc)
             runs.append(sc)
@@ -70,25 +70,14 @@ def data_sparsity(
         for curve, size, kind in jobs:
             runs = []
             for r in range(repeats):
-                s = TrainSettings(
-                    n_points=size if curve == "points" else settings.n_points,
-                    n_pseudo=size if curve == "pseudo" else settings.n_pseudo,
-                    restarts=settings.restarts,
-                    max_iter=settings.max_iter,
-                    hyper_points=settings.hyper_points,
-                    polish_iter=settings.polish_iter,
-                )
+                s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
                 folder = Path(tmp) / f"{curve}_{size}_{r}"
                 train_models([train], folder, kinds=[kind], settings=s, seed=seed + 1000 * r + size)
-                runs.append(_track(folder, test, seg))
+                runs.append(_track(folder, kind, test, seg))
                 if tick:
                     tick()
-            out[curve][str(size)] = {f: _mean_sd([x[f] for x in runs]) for f in FILTERS}
+            out[curve][str(size)] = {f: mean_sd([x[f] for x in runs]) for f in FILTERS}
     return out
-
-
-def _mean_sd(runs: list[dict[str, float]]) -> dict[str, list[float]]:
-    return {m: [float(np.mean([r[m] for r in runs])), float(np.std([r[m] for r in runs]))] for m in MEASURES}
 
 
 def plot_data_sparsity(res: dict, path: Path) -> Path:

@@ -14,7 +14,7 @@ import numpy as np
 
 from agents.tracking import TrackResult
 
-__all__ = ["plot_tracking", "save_figure", "write_text_atomic"]
+__all__ = ["plot_tracking", "save_figure"]
 
 PANELS = (
     (0, "x (m)"),
@@ -33,16 +33,6 @@ def save_figure(fig: plt.Figure, path: Path, dpi: int = 110) -> Path:
     os.close(fd)
     fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
-    os.replace(tmp, path)
-    return path
-
-
-def write_text_atomic(path: Path, text: str) -> Path:
-    """Write ``text`` to a temporary file beside ``path``, then rename (no half-written file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text)
     os.replace(tmp, path)
     return path
 

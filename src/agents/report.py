@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from agents.plots import write_text_atomic
 from agents.tracking import GROUPS
+from estimator_service.gp.io import atomic_write_text
 
 __all__ = ["write_report"]
 
@@ -292,5 +292,5 @@ def write_report(out: Path, res: dict) -> Path:
         lines.append("")
     lines += _checks(res)
     path = out / "report.md"
-    write_text_atomic(path, "\n".join(lines))
+    atomic_write_text(path, "\n".join(lines))
     return path

@@ -21,11 +21,11 @@ from scipy.stats import chi2
 from tqdm import tqdm
 
 from agents.landmark import run_landmark_experiment
-from agents.plots import write_text_atomic
 from agents.recorder import Flight, collect_flight
-from agents.tracking import aggregate_rms, group_rms, state_error, track_flight
+from agents.tracking import aggregate_rms, group_rms, mean_sd, segments, state_error, track_flight
 from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
+from estimator_service.gp.io import atomic_write_text
 from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.models.calibration import read_noise_scales
 
@@ -110,7 +110,7 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
     f = build_filter(filt, kind, folder, **({"n_particles": s.particles} if filt == "pf" else {}))
     seg = round(s.track_seconds / 0.25)
     length = min(seg, round(s.pf_seconds / 0.25)) if filt == "pf" else seg
-    rows = [slice(a, a + length) for a in range(0, len(test) - seg + 1, seg)] or [slice(None)]
+    rows = segments(len(test), seg, length)
     with single_threaded_blas() if filt == "pf" else nullcontext():  # PF: 266 -> 177 ms per step
         scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
     out = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
@@ -194,14 +194,14 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     results = {
         "fig3": _fig3(folds[0], s, settings, out, progress),
         "settings": asdict(s),
-        "table5_6": {k: _mean_sd(v) for k, v in table5.items() if v},
-        "tracking": {f"{f}/{k}": _mean_sd(v) for (f, k), v in track.items()},
+        "table5_6": {k: mean_sd(v) for k, v in table5.items() if v},
+        "tracking": {f"{f}/{k}": mean_sd(v) for (f, k), v in track.items()},
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
         "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
     }
     results["noise_scales"] = [read_noise_scales(out / f"models_fold{i}") for i in range(len(folds))]
     results["wall_s"] = time.perf_counter() - t0
-    write_text_atomic(out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     from agents.report import write_report
 
     write_report(out, results)
@@ -223,10 +223,6 @@ def _fig3(fold: tuple[Flight, Flight], s: ReproduceSettings, settings: TrainSett
     bar.close()
     plot_data_sparsity(res, out / "fig3_training_points.png")
     return res
-
-
-def _mean_sd(runs: list[dict[str, float]]) -> dict[str, list[float]]:
-    return {k: [float(np.mean([r[k] for r in runs])), float(np.std([r[k] for r in runs]))] for k in runs[0]}
 
 
 def nees_band(dof: int, steps: int) -> tuple[float, float]:

@@ -21,8 +21,8 @@ from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback,
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
-from agents.plots import write_text_atomic
 from agents.wrappers import VARIANTS, make_belief_env
+from estimator_service.gp.io import atomic_write_text
 
 __all__ = ["AgentPolicy", "AgentSpec", "evaluate_agent", "load_agent", "make_vec", "train_agent"]
 
@@ -128,7 +128,7 @@ def train_agent(
     )
     agent.learn(timesteps, callback=callbacks, progress_bar=progress_bar)
     agent.save(out / "model.zip")
-    write_text_atomic(out / "agent.json", json.dumps(asdict(spec), indent=2))
+    atomic_write_text(out / "agent.json", json.dumps(asdict(spec), indent=2))
     _plot_learning_curve(out)
     venv.close()
     eval_env.close()

@@ -19,7 +19,9 @@ __all__ = [
     "TrackResult",
     "aggregate_rms",
     "group_rms",
+    "mean_sd",
     "score",
+    "segments",
     "state_error",
     "track_flight",
     "wrap_angle",
@@ -168,3 +170,15 @@ def score(r: TrackResult) -> dict[str, float]:
 def aggregate_rms(scores: dict[str, float]) -> float:
     """One number per run: the mean of the four group RMS values in paper units."""
     return float(np.mean([scores[g] for g in GROUPS]))
+
+
+def segments(n_rows: int, seg: int, length: int | None = None) -> list[slice]:
+    """Consecutive blocks of ``seg`` rows of an ``n_rows`` flight, each cut to its first
+    ``length`` rows (all ``seg`` when None); the whole flight when it is shorter than one."""
+    use = seg if length is None else length
+    return [slice(a, a + use) for a in range(0, n_rows - seg + 1, seg)] or [slice(None)]
+
+
+def mean_sd(runs: list[dict[str, float]]) -> dict[str, list[float]]:
+    """``{key: [mean, sd]}`` over runs that share their keys."""
+    return {k: [float(np.mean([r[k] for r in runs])), float(np.std([r[k] for r in runs]))] for k in runs[0]}

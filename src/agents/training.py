@@ -238,8 +238,7 @@ def calibrate_noise(
     rows = slice(0, max(2, round(seconds / flight.metadata["dt"])))
     chosen, nees_at = {}, {}
     for kind in kinds:
-        write_noise_scales(folder, {kind: 1.0})  # calibrate the raw model
-        pred, obs = load_models(folder, kind)
+        pred, obs = load_models(folder, kind, calibrated=False)
         nees = []
         for k in scales:
             r = track_flight(make_filter("ekf", NoiseScaledPrediction(pred, k), obs), flight, rows=rows)

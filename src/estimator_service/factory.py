@@ -90,17 +90,19 @@ def load_parametric(path: str | os.PathLike[str]) -> tuple[BlimpODE, CameraModel
         return ode, CameraModel(cams, d["cam_axes"], d["cam_noise"])
 
 
-def load_models(model_dir: str | os.PathLike[str], kind: str) -> tuple[PredictionModel, ObservationModel]:
+def load_models(
+    model_dir: str | os.PathLike[str], kind: str, *, calibrated: bool = True
+) -> tuple[PredictionModel, ObservationModel]:
     """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`).
 
-    The prediction noise is scaled by the folder's ``calibration.json`` entry for ``kind``
-    when there is one (see :mod:`estimator_service.models.calibration`).
+    With ``calibrated`` the prediction noise is scaled by the folder's ``calibration.json``
+    entry for ``kind`` when there is one (see :mod:`estimator_service.models.calibration`).
     """
     if kind not in MODEL_KINDS:
         raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
     folder = Path(model_dir)
     ode, cam = load_parametric(folder / "parametric.npz")
-    scale = read_noise_scales(folder).get(kind, 1.0)
+    scale = read_noise_scales(folder).get(kind, 1.0) if calibrated else 1.0
     if kind == "param":
         return (ode if scale == 1.0 else NoiseScaledPrediction(ode, scale)), cam
     extra_p = {}

@@ -70,11 +70,21 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
 
 def atomic_savez(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
     """``np.savez`` to a temporary file in the same folder, then rename: never half a file."""
+    return _atomic(path, ".npz.tmp", lambda fh: np.savez(fh, **arrays))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Write ``text`` (UTF-8) to a temporary file in the same folder, then rename."""
+    return _atomic(path, ".tmp", lambda fh: fh.write(text.encode("utf-8")))
+
+
+def _atomic(path: str | os.PathLike[str], suffix: str, write) -> Path:
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(suffix=".npz.tmp", dir=path.parent if str(path.parent) else ".")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=path.parent if str(path.parent) else ".")
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
+            write(fh)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

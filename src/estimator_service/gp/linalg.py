@@ -92,5 +92,4 @@ def chol_inverse(l: FloatArray) -> FloatArray:
     inv, info = sla.lapack.dpotri(l, lower=1)
     if info != 0:
         raise NotPositiveDefiniteError(f"potri failed with info {info}")
-    lower = np.tril(inv)
-    return lower + np.tril(inv, -1).T
+    return np.tril(inv) + np.tril(inv, -1).T  # potri fills the lower triangle only

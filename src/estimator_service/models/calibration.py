@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator_service.gp.io import atomic_write_text
 from estimator_service.models.base import ModelOutput, PredictionModel
 
 __all__ = ["CALIBRATION_FILE", "NoiseScaledPrediction", "read_noise_scales", "write_noise_scales"]
@@ -75,10 +76,7 @@ def write_noise_scales(folder: str | os.PathLike[str], scales: dict[str, float],
     merged = {**read_noise_scales(folder), **{k: float(v) for k, v in scales.items()}}
     old = json.loads(path.read_text()).get("details", {}) if path.exists() else {}
     text = json.dumps({"noise_scale": merged, "details": {**old, **details}}, indent=2, default=_plain)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, text)
 
 
 def _plain(o: object) -> object:
