@@ -14,7 +14,11 @@ from agents.pilots import make_pilot
 from agents.recorder import collect_flight, load_flight, save_flight
 from estimator_service.factory import load_models
 from estimator_service.gp import CircularGP, EnhancedGP
-from estimator_service.models.calibration import NoiseScaledPrediction, read_noise_scales
+from estimator_service.models.calibration import (
+    NoiseScaledObservation,
+    NoiseScaledPrediction,
+    read_noise_scales,
+)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +116,9 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     gps = {k: getattr(p, "inner", p).gp for k, p in pred.items()}
     assert isinstance(gps["hetgp"], EnhancedGP)  # hetGP models the parametric residual
     assert isinstance(gps["gp"], CircularGP) and isinstance(gps["sparse"], CircularGP)
-    assert kinds["gp"][1].parts[0].gp.angle_output == 4  # the ellipse orientation is circular
+    obs = kinds["gp"][1]  # every kind got per-output observation-noise scales, none below 1
+    assert isinstance(obs, NoiseScaledObservation) and obs.scale.shape == (10,) and obs.scale.min() >= 1
+    assert obs.inner.parts[0].gp.angle_output == 4  # the ellipse orientation is circular
     capsys.readouterr()
     assert (
         gpbf(

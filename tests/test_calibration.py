@@ -1,4 +1,5 @@
-"""Process-noise calibration: the scaled model, its file, and the NEES-matching choice."""
+"""Noise calibration: the scaled models, their file, the NEES-matching process-noise choice
+and the held-out observation-noise scales."""
 
 from __future__ import annotations
 
@@ -9,13 +10,22 @@ import numpy as np
 import pytest
 
 from agents.recorder import collect_flight
-from agents.training import TrainSettings, calibrate_noise, train_models
+from agents.training import (
+    TrainSettings,
+    calibrate_noise,
+    calibrate_observation,
+    calibration_rows,
+    train_models,
+    without_frames,
+)
 from estimator_service.factory import load_models
-from estimator_service.models import LinearGaussianPrediction
+from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.models.calibration import (
     CALIBRATION_FILE,
+    NoiseScaledObservation,
     NoiseScaledPrediction,
     read_noise_scales,
+    read_observation_scales,
     write_noise_scales,
 )
 
@@ -43,7 +53,7 @@ def test_scales_file_round_trip_merge_and_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="finite and > 0"):
         read_noise_scales(tmp_path)
     (tmp_path / CALIBRATION_FILE).write_text("[1, 2]")
-    with pytest.raises(ValueError, match="noise_scale"):
+    with pytest.raises(ValueError, match="JSON object"):
         read_noise_scales(tmp_path)
 
 
@@ -58,3 +68,43 @@ def test_calibration_picks_the_scale_whose_nees_is_nearest_the_state_dimension(t
     assert chosen == {"param": float(best)} and nees["0.01"] > nees["1.0"] > nees["100.0"]
     pred, _ = load_models(tmp_path, "param")
     assert (chosen["param"] == 1.0) != isinstance(pred, NoiseScaledPrediction)
+
+
+def test_scaled_observation_scales_each_output_variance() -> None:
+    base = LinearGaussianObservation(np.array([[1.0, 0.0], [1.0, 1.0]]), np.array([0.1, 0.2]))
+    scaled = NoiseScaledObservation(base, np.array([2.0, 5.0]))
+    x = np.array([[1.0, 2.0], [0.0, -1.0]])
+    a, b = base.observe(x, jac=True), scaled.observe(x, jac=True)
+    np.testing.assert_array_equal(b.mean, a.mean)
+    np.testing.assert_array_equal(b.jac, a.jac)
+    np.testing.assert_allclose(b.var, a.var * [2.0, 5.0])
+    assert scaled.obs_dim == 2 and scaled.state_dim == 2
+    for bad in (np.array([1.0]), np.array([1.0, -1.0]), np.array([1.0, np.nan])):
+        with pytest.raises(ValueError, match="observation noise scale"):
+            NoiseScaledObservation(base, bad)
+
+
+def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path: Path) -> None:
+    flight = collect_flight(120, seed=4)
+    rows = calibration_rows(flight, 20.0)
+    assert rows == slice(0, 80) and calibration_rows(flight, 1e4) == slice(0, len(flight) // 4)
+    held = without_frames(flight, rows)
+    assert not held.valid[rows].any() and (held.valid[80:] == flight.valid[80:]).all()
+    s = TrainSettings(n_points=60, restarts=1, max_iter=5, calibration_seconds=0)
+    train_models([held], tmp_path, kinds=["param"], settings=s, seed=0)
+    chosen = calibrate_observation(flight, tmp_path, ["param"], rows=rows, floor=1e-6)["param"]
+    _, cam = load_models(tmp_path, "param", calibrated=False)
+    fl = flight.select(np.arange(80))
+    for j in range(10):  # independently: camera j // 5, ellipse field j % 5
+        v = fl.valid[:, j // 5]
+        out = cam.observe(fl.state[v])
+        r = fl.ellipses[v, j // 5, j % 5] - out.mean[:, j]
+        if j % 5 == 4:
+            r = (r + np.pi / 2) % np.pi - np.pi / 2
+        assert chosen[j] == pytest.approx(np.mean(r * r / out.var[:, j]), rel=1e-9)
+    calibrate_observation(flight, tmp_path, ["param"], rows=rows)  # the default floor 1 never narrows
+    _, obs = load_models(tmp_path, "param")
+    assert isinstance(obs, NoiseScaledObservation)
+    np.testing.assert_allclose(obs.scale, np.maximum(chosen, 1.0))
+    assert read_observation_scales(tmp_path)["param"].shape == (10,)
+    assert read_noise_scales(tmp_path) == {}  # process scales untouched

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,14 @@ from estimator_service.gp import (
 from estimator_service.models.blimp import BlimpODE, fit_blimp_ode
 from estimator_service.models.camera import CameraModel, PinholeCalibration, fit_camera_model
 
-__all__ = ["TrainSettings", "calibrations", "prediction_data", "train_models"]
+__all__ = [
+    "TrainSettings",
+    "calibrate_noise",
+    "calibrate_observation",
+    "calibrations",
+    "prediction_data",
+    "train_models",
+]
 
 FloatArray = NDArray[np.float64]
 YAW = (5,)  # angle inputs that wrap
@@ -62,8 +69,11 @@ class TrainSettings:
         sparse GP-EKF scored aggregate RMS 14.6, 12.3, 13.2 and 13.3 after 60, 120, 200
         and 500 iterations while the marginal likelihood kept improving.
     calibration_seconds
-        Length of the training-flight stretch on which each kind's process-noise scale is
-        chosen (:func:`calibrate_noise`; 0 skips calibration).
+        Length of the training-flight stretch on which each kind's noise is calibrated (0
+        skips calibration): its frames (at most a quarter of the flight) are kept out of
+        every observation model and set the observation-noise scales
+        (:func:`calibrate_observation`), then the process-noise scale is chosen on it
+        (:func:`calibrate_noise`).
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
@@ -160,12 +170,15 @@ def train_models(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    original = flights[0]
     unknown = set(kinds) - set(MODEL_KINDS)
     if unknown:
         raise ValueError(f"unknown model kinds {sorted(unknown)}; choose from {MODEL_KINDS}")
     rng = np.random.default_rng(seed)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    held_out = calibration_rows(flights[0], settings.calibration_seconds)
+    flights = [without_frames(flights[0], held_out), *flights[1:]]  # transitions are all kept
     ode, cam = train_parametric(flights)
     save_parametric(ode, cam, out / "parametric.npz")
     timings["param"] = time.perf_counter() - t0
@@ -211,9 +224,54 @@ def train_models(
             on_progress(kind, None)
     if settings.calibration_seconds > 0:
         t0 = time.perf_counter()
-        calibrate_noise(flights[0], out, kinds, seconds=settings.calibration_seconds)
+        calibrate_observation(original, out, kinds, rows=held_out)
+        calibrate_noise(original, out, kinds, seconds=settings.calibration_seconds)
         timings["calibration"] = time.perf_counter() - t0
     return timings
+
+
+def calibration_rows(flight: Flight, seconds: float) -> slice:
+    """The first ``seconds`` of ``flight``, at most a quarter of it (empty for 0)."""
+    n = round(seconds / flight.metadata["dt"]) if seconds > 0 else 0
+    return slice(0, min(n, len(flight) // 4))
+
+
+def without_frames(flight: Flight, rows: slice) -> Flight:
+    """``flight`` with no camera frames in ``rows`` (states, controls and transitions kept)."""
+    valid = flight.valid.copy()
+    valid[rows] = False
+    return replace(flight, valid=valid)
+
+
+def calibrate_observation(
+    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice,
+    floor: float = 1.0, cap: float = 100.0, min_frames: int = 10,
+) -> dict[str, FloatArray]:  # fmt: skip
+    """Per kind and output, the mean squared standardised residual ``(z - mean)^2 / var``
+    of the observation model over the frames in ``rows`` of ``flight`` (which no
+    observation model was trained on), clipped to ``[floor, cap]`` (1 where an output has
+    fewer than ``min_frames`` frames); written to ``folder/calibration.json``.
+
+    A consistent model gives 1. Measured on a held-out blimp block with the paper-size exact
+    GP: 5.3 and 6.1 for camera 1's ellipse position, 0.8-2.1 elsewhere.
+    """
+    from estimator_service.factory import load_models
+    from estimator_service.models.calibration import write_noise_scales
+
+    fl = flight.select(np.arange(len(flight))[rows])
+    z = fl.ellipses.reshape(len(fl), -1)
+    valid = np.repeat(fl.valid, 5, axis=1)
+    count = valid.sum(axis=0)
+    chosen = {}
+    for kind in kinds:
+        _, obs = load_models(folder, kind, calibrated=False)
+        out = obs.observe(fl.state)
+        r = z - out.mean
+        r[:, ELLIPSE_ANGLE::5] = (r[:, ELLIPSE_ANGLE::5] + np.pi / 2) % np.pi - np.pi / 2
+        z2 = np.where(valid, r * r / out.var, 0.0).sum(axis=0) / np.maximum(count, 1)
+        chosen[kind] = np.clip(np.where(count >= min_frames, z2, 1.0), floor, cap)
+    write_noise_scales(folder, {}, observation=chosen, observation_frames=count.tolist())
+    return chosen
 
 
 NOISE_SCALES = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0)
@@ -238,7 +296,8 @@ def calibrate_noise(
     rows = slice(0, max(2, round(seconds / flight.metadata["dt"])))
     chosen, nees_at = {}, {}
     for kind in kinds:
-        pred, obs = load_models(folder, kind, calibrated=False)
+        pred, _ = load_models(folder, kind, calibrated=False)
+        _, obs = load_models(folder, kind)  # with its observation-noise scales, if any
         nees = []
         for k in scales:
             r = track_flight(make_filter("ekf", NoiseScaledPrediction(pred, k), obs), flight, rows=rows)

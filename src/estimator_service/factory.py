@@ -20,7 +20,12 @@ from estimator_service.gp import load_gp
 from estimator_service.gp.io import atomic_savez
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.blimp import BlimpODE
-from estimator_service.models.calibration import NoiseScaledPrediction, read_noise_scales
+from estimator_service.models.calibration import (
+    NoiseScaledObservation,
+    NoiseScaledPrediction,
+    read_noise_scales,
+    read_observation_scales,
+)
 from estimator_service.models.camera import CameraModel, PinholeCalibration
 from estimator_service.models.gp_models import (
     GPObservationModel,
@@ -95,25 +100,30 @@ def load_models(
 ) -> tuple[PredictionModel, ObservationModel]:
     """Prediction and observation models of ``kind`` (one of :data:`MODEL_KINDS`).
 
-    With ``calibrated`` the prediction noise is scaled by the folder's ``calibration.json``
-    entry for ``kind`` when there is one (see :mod:`estimator_service.models.calibration`).
+    With ``calibrated`` the prediction and observation noise are scaled by the folder's
+    ``calibration.json`` entries for ``kind`` where there are any (see
+    :mod:`estimator_service.models.calibration`).
     """
     if kind not in MODEL_KINDS:
         raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
     folder = Path(model_dir)
     ode, cam = load_parametric(folder / "parametric.npz")
-    scale = read_noise_scales(folder).get(kind, 1.0) if calibrated else 1.0
     if kind == "param":
-        return (ode if scale == 1.0 else NoiseScaledPrediction(ode, scale)), cam
-    extra_p = {}
-    if kind in ENHANCED_KINDS:
-        extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
-    pred: PredictionModel = GPPredictionModel(
-        load_gp(folder / f"prediction_{kind}.npz", **extra_p), STATE_DIM
+        pred, obs = ode, cam
+    else:
+        extra_p = {}
+        if kind in ENHANCED_KINDS:
+            extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
+        pred = GPPredictionModel(load_gp(folder / f"prediction_{kind}.npz", **extra_p), STATE_DIM)
+        obs = _observation(folder, kind, cam)
+    if not calibrated:
+        return pred, obs
+    scale = read_noise_scales(folder).get(kind, 1.0)
+    obs_scale = read_observation_scales(folder).get(kind)
+    return (
+        pred if scale == 1.0 else NoiseScaledPrediction(pred, scale),
+        obs if obs_scale is None else NoiseScaledObservation(obs, obs_scale),
     )
-    if scale != 1.0:
-        pred = NoiseScaledPrediction(pred, scale)
-    return pred, _observation(folder, kind, cam)
 
 
 def _observation(folder: Path, kind: str, cam: CameraModel) -> ObservationModel:

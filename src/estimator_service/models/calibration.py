@@ -1,4 +1,4 @@
-"""Process-noise calibration: a prediction model whose noise variance is scaled.
+"""Noise calibration: prediction and observation models whose noise variance is scaled.
 
 A GP's predictive variance (and the parametric model's residual variance) describes
 one-step errors of independent transitions. A filter chains them, and unmodelled effects
@@ -7,6 +7,13 @@ time) make every filter overconfident. One scalar per model kind, chosen on trai
 flights so that the filter's average NEES matches the state dimension, corrects that
 (:func:`agents.training.calibrate_noise`); it is stored beside the models in
 ``calibration.json`` and applied by :func:`estimator_service.factory.load_models`.
+
+Observation GPs are overconfident in another way: their variance is smallest on their own
+training frames, and held-out states lie between them (held-out blimp block, paper-size
+GP: ellipse-position errors 2.3-2.5x the predicted standard deviation for one camera).
+A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
+particles (:func:`agents.training.calibrate_observation` measures it on a stretch of the
+training flight kept out of the observation training set; one scale per output).
 """
 
 from __future__ import annotations
@@ -21,9 +28,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.gp.io import atomic_write_text
-from estimator_service.models.base import ModelOutput, PredictionModel
+from estimator_service.models.base import ModelOutput, ObservationModel, PredictionModel
 
-__all__ = ["CALIBRATION_FILE", "NoiseScaledPrediction", "read_noise_scales", "write_noise_scales"]
+__all__ = [
+    "CALIBRATION_FILE",
+    "NoiseScaledObservation",
+    "NoiseScaledPrediction",
+    "read_noise_scales",
+    "read_observation_scales",
+    "write_noise_scales",
+]
 
 FloatArray = NDArray[np.float64]
 CALIBRATION_FILE = "calibration.json"
@@ -54,29 +68,95 @@ class NoiseScaledPrediction:
         return ModelOutput(out.mean, out.var * self.scale, out.jac)
 
 
-def read_noise_scales(folder: str | os.PathLike[str]) -> dict[str, float]:
-    """``{model kind: scale}`` from ``folder/calibration.json`` (empty when there is none)."""
+@dataclass(frozen=True)
+class NoiseScaledObservation:
+    """``inner`` with its noise variance multiplied per output by ``scale (m,)``."""
+
+    inner: ObservationModel
+    scale: FloatArray
+
+    def __post_init__(self) -> None:
+        s = np.asarray(self.scale, dtype=np.float64)
+        if s.shape != (self.inner.obs_dim,) or not np.all(np.isfinite(s) & (s > 0)):
+            raise ValueError(
+                f"observation noise scale must be {self.inner.obs_dim} finite numbers > 0, got {self.scale!r}"
+            )
+        object.__setattr__(self, "scale", s)
+
+    @property
+    def state_dim(self) -> int:
+        return self.inner.state_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return self.inner.obs_dim
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        """``inner.observe`` with ``var * scale``: mean ``(M, m)``, var ``(M, m)``, jac ``(M, m, n)``."""
+        out = self.inner.observe(x, jac=jac, var=var)
+        return ModelOutput(out.mean, out.var * self.scale, out.jac)
+
+
+def _read(folder: str | os.PathLike[str]) -> dict:
     path = Path(folder) / CALIBRATION_FILE
     if not path.exists():
         return {}
     try:
         raw = json.loads(path.read_text())
-        scales = {str(k): float(v) for k, v in raw["noise_scale"].items()}
-    except (ValueError, KeyError, TypeError, AttributeError) as e:
-        raise ValueError(f"{os.fspath(path)!r}: expected {{'noise_scale': {{kind: number}}}} ({e})") from e
-    bad = {k: v for k, v in scales.items() if not (math.isfinite(v) and v > 0)}
+        if not isinstance(raw, dict):
+            raise TypeError("not an object")
+        return raw
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{os.fspath(path)!r}: expected a JSON object ({e})") from e
+
+
+def _checked(folder: str | os.PathLike[str], key: str, values: dict[str, FloatArray]) -> None:
+    bad = {k: v.tolist() for k, v in values.items() if not np.all(np.isfinite(v) & (v > 0))}
     if bad:
-        raise ValueError(f"{os.fspath(path)!r}: noise scales must be finite and > 0, got {bad}")
+        path = os.fspath(Path(folder) / CALIBRATION_FILE)
+        raise ValueError(f"{path!r}: {key} values must be finite and > 0, got {bad}")
+
+
+def read_noise_scales(folder: str | os.PathLike[str]) -> dict[str, float]:
+    """``{model kind: process-noise scale}`` from ``folder/calibration.json`` (empty when
+    there is none)."""
+    try:
+        scales = {str(k): float(v) for k, v in _read(folder).get("noise_scale", {}).items()}
+    except (ValueError, TypeError, AttributeError) as e:
+        path = os.fspath(Path(folder) / CALIBRATION_FILE)
+        raise ValueError(f"{path!r}: expected {{'noise_scale': {{kind: number}}}} ({e})") from e
+    _checked(folder, "noise_scale", {k: np.array(v) for k, v in scales.items()})
     return scales
 
 
-def write_noise_scales(folder: str | os.PathLike[str], scales: dict[str, float], **details: object) -> Path:
-    """Merge ``scales`` into ``folder/calibration.json`` (written to a temporary file, then renamed)."""
+def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:
+    """``{model kind: observation-noise scales (m,)}`` from ``folder/calibration.json``."""
+    try:
+        raw = _read(folder).get("observation_noise_scale", {})
+        scales = {str(k): np.array(v, dtype=np.float64).reshape(-1) for k, v in raw.items()}
+    except (ValueError, TypeError, AttributeError) as e:
+        path = os.fspath(Path(folder) / CALIBRATION_FILE)
+        want = "{'observation_noise_scale': {kind: [numbers]}}"
+        raise ValueError(f"{path!r}: expected {want} ({e})") from e
+    _checked(folder, "observation_noise_scale", scales)
+    return scales
+
+
+def write_noise_scales(
+    folder: str | os.PathLike[str],
+    scales: dict[str, float],
+    observation: dict[str, FloatArray] | None = None,
+    **details: object,
+) -> Path:
+    """Merge process-noise ``scales`` and per-output ``observation`` scales into
+    ``folder/calibration.json`` (written to a temporary file, then renamed)."""
     path = Path(folder) / CALIBRATION_FILE
     merged = {**read_noise_scales(folder), **{k: float(v) for k, v in scales.items()}}
-    old = json.loads(path.read_text()).get("details", {}) if path.exists() else {}
-    text = json.dumps({"noise_scale": merged, "details": {**old, **details}}, indent=2, default=_plain)
-    return atomic_write_text(path, text)
+    obs = {k: v.tolist() for k, v in read_observation_scales(folder).items()}
+    obs.update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (observation or {}).items()})
+    old = _read(folder).get("details", {})
+    body = {"noise_scale": merged, "observation_noise_scale": obs, "details": {**old, **details}}
+    return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
 
 
 def _plain(o: object) -> object:
