@@ -27,7 +27,7 @@ from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 from estimator_service.gp.io import atomic_write_text
 from estimator_service.gp.linalg import single_threaded_blas
-from estimator_service.models.calibration import read_noise_scales
+from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 
 __all__ = ["ReproduceSettings", "reproduce", "split_folds"]
 
@@ -199,7 +199,11 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
         "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
     }
-    results["noise_scales"] = [read_noise_scales(out / f"models_fold{i}") for i in range(len(folds))]
+    folders = [out / f"models_fold{i}" for i in range(len(folds))]
+    results["noise_scales"] = [read_noise_scales(f) for f in folders]
+    results["observation_scales"] = [
+        {k: v.tolist() for k, v in read_observation_scales(f).items()} for f in folders
+    ]
     results["wall_s"] = time.perf_counter() - t0
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     from agents.report import write_report
