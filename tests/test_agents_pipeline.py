@@ -12,6 +12,7 @@ import pytest
 from agents.cli import main as gpbf
 from agents.pilots import make_pilot
 from agents.recorder import collect_flight, load_flight, save_flight
+from agents.training import TrainSettings, train_models
 from estimator_service.factory import load_models
 from estimator_service.gp import CircularGP, EnhancedGP
 from estimator_service.models.calibration import (
@@ -77,6 +78,21 @@ def test_malformed_flight_files_are_rejected(flight, tmp_path: Path) -> None:
     np.savez(tmp_path / "bad.npz", **data)
     with pytest.raises(ValueError, match="'state'"):
         load_flight(tmp_path / "bad.npz")
+
+
+def test_a_kinds_models_do_not_depend_on_the_other_kinds_trained(flight, tmp_path: Path) -> None:
+    s = TrainSettings(n_points=40, restarts=1, max_iter=3, sparse_iter=3, n_pseudo=5, calibration_seconds=0)
+    train_models([flight], tmp_path / "a", kinds=["gp"], settings=s, seed=5)
+    train_models([flight], tmp_path / "b", kinds=["sparse", "gp"], settings=s, seed=5)
+    train_models([flight], tmp_path / "c", kinds=["gp"], settings=s, seed=6)
+    for name in ("prediction_gp.npz", "observation_gp_cam0.npz"):
+        with np.load(tmp_path / "a" / name) as a, np.load(tmp_path / "b" / name) as b:
+            assert a.files == b.files
+            for k in a.files:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=f"{name}:{k}")
+    gp_a, gp_c = (tmp_path / d / "prediction_gp.npz" for d in "ac")
+    with np.load(gp_a) as a, np.load(gp_c) as c:  # another seed: other subsets, other model
+        assert any(not np.array_equal(a[k], c[k]) for k in a.files if a[k].dtype.kind == "f")
 
 
 def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
