@@ -113,6 +113,8 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
         "8",
         "--hetero-iterations",
         "1",
+        "--calibration-seconds",
+        "20",
         "--kinds",
         "gp,egp,hetgp,sparse",
         "--quiet",
@@ -134,6 +136,8 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     assert isinstance(gps["gp"], CircularGP) and isinstance(gps["sparse"], CircularGP)
     obs = kinds["gp"][1]  # every kind got per-output observation-noise scales, none below 1
     assert isinstance(obs, NoiseScaledObservation) and obs.scale.shape == (10,) and obs.scale.min() >= 1
+    frames = json.loads((m / "calibration.json").read_text())["details"]["observation_frames"]
+    assert 0 < max(frames) <= 80  # the first 20 s (80 steps) held out
     assert obs.inner.parts[0].gp.angle_output == 4  # the ellipse orientation is circular
     capsys.readouterr()
     assert (

@@ -62,6 +62,7 @@ def _train(args: argparse.Namespace) -> int:
         args.hetero_iterations,
         sparse_iter=args.sparse_iter,
         hyper_points=args.hyper_points or None,
+        calibration_seconds=args.calibration_seconds,
     )
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
     bars: dict[str, tqdm] = {}
@@ -217,6 +218,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=300,
         help="exact GPs learn hyperparameters on this many random points, then polish them on "
         "all (0: on all points from the start)",
+    )
+    t.add_argument(
+        "--calibration-seconds",
+        type=float,
+        default=60.0,
+        help="noise calibration on the first flight's first SECONDS (at most a quarter of it): "
+        "their camera frames are kept out of the observation models and scale each output's "
+        "variance, then the process-noise scale is chosen there (0: no calibration)",
     )
     t.add_argument("--seed", type=int, default=0, help="seed of the subsampling and restarts")
     t.set_defaults(func=_train)
