@@ -272,7 +272,9 @@ def calibrate_observation(
         out = obs.observe(fl.state)
         r = z - out.mean
         r[:, ELLIPSE_ANGLE::5] = (r[:, ELLIPSE_ANGLE::5] + np.pi / 2) % np.pi - np.pi / 2
-        z2 = np.where(valid, r * r / out.var, 0.0).sum(axis=0) / np.maximum(count, 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z2 = np.where(valid, r * r / out.var, 0.0).sum(axis=0) / np.maximum(count, 1)
+        z2 = np.nan_to_num(z2, nan=cap, posinf=cap)  # a broken output gets the widest scale
         chosen[kind] = np.clip(np.where(count >= min_frames, z2, 1.0), floor, cap)
     write_noise_scales(folder, {}, observation=chosen, observation_frames=count.tolist())
     return chosen
