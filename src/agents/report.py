@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.tracking import GROUPS
+from agents.tracking import GROUPS, consistency_band
 from estimator_service.gp.io import atomic_write_text
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 
@@ -174,7 +174,30 @@ def _tables7_9(res: dict) -> list[str]:
                 f"{v['step_ms'][0]:.2f} | {v['nees'][0]:.1f} | {v['nis_per_dof'][0]:.2f} | "
                 f"{v['failed'][0]:.2f} |"
             )
-    return [*lines, "", *_scales_line(res)]
+    return [*lines, "", *_bands(res), *_scales_line(res)]
+
+
+def _bands(res: dict) -> list[str]:
+    """The 95% bands of a consistent filter's averaged NEES and NIS/dof, and who is inside."""
+    tr, folds = res["tracking"], res["settings"]["folds"]
+    parts, inside = [], []
+    for key, v in tr.items():
+        if "nees_var" not in v:
+            return []
+        f, k = key.split("/")
+        nees = consistency_band(12.0, v["nees_var"][0] / folds)
+        nis = consistency_band(1.0, v["nis_var"][0] / folds)
+        if k == "param":
+            parts.append(f"{f.upper()} NEES {nees[0]:.2f}-{nees[1]:.2f}, NIS/dof {nis[0]:.3f}-{nis[1]:.3f}")
+        for name, val, band in (("NEES", v["nees"][0], nees), ("NIS", v["nis_per_dof"][0], nis)):
+            if band[0] <= val <= band[1]:
+                inside.append(f"{f.upper()}-{k} {name}")
+    return [
+        "95% bands of a consistent filter for these averages (normal approximation to their "
+        f"chi-square laws, steps taken as independent): {'; '.join(parts)}. "
+        f"Inside their band: {', '.join(inside) if inside else 'none'}.",
+        "",
+    ]
 
 
 def _kinds(per_fold: list[dict]) -> list[str]:

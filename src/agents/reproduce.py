@@ -114,6 +114,8 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
     with single_threaded_blas() if filt == "pf" else nullcontext():  # PF: 266 -> 177 ms per step
         scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
     out = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+    out["nees_var"] /= len(scores)  # variances of the averages over the segments
+    out["nis_var"] /= len(scores)
     out["aggregate_rms"] = float(np.mean([aggregate_rms(sc) for sc in scores]))
     out["steps"] = length
     return out

@@ -159,12 +159,31 @@ def score(r: TrackResult) -> dict[str, float]:
     out["nees"] = float(np.mean(nees))
     has = r.dof > 0
     out["nis_per_dof"] = float(np.mean(r.nis[has] / r.dof[has])) if has.any() else math.nan
+    out["nees_var"], out["nis_var"] = consistent_variances(len(nees), r.dof, r.truth.shape[1])
     outside = float(np.mean(nees > chi2.ppf(0.9973, 12)))
     out["outside_3sigma"] = outside
     out["failed"] = float(outside > 0.10)
     out["step_ms"] = r.step_s * 1e3
     out["diverged_steps"] = float(np.sum(r.diverged))
     return out
+
+
+def consistent_variances(steps: int, dof: NDArray[np.int64], state_dim: int = 12) -> tuple[float, float]:
+    """Variances of the time-averaged NEES and NIS/dof of a consistent filter.
+
+    NEES at each of ``steps`` steps is chi-square with ``state_dim`` degrees of freedom
+    (variance ``2 state_dim``); NIS/dof at a step with ``d = dof[k] > 0`` has variance
+    ``2 / d``; steps are treated as independent.
+    """
+    has = dof > 0
+    nis = float(np.sum(2.0 / dof[has]) / has.sum() ** 2) if has.any() else math.nan
+    return 2.0 * state_dim / max(steps, 1), nis
+
+
+def consistency_band(mean: float, var_of_mean: float, z: float = 1.96) -> tuple[float, float]:
+    """95% band ``mean +- z sd`` of an average (normal approximation to its chi-square law)."""
+    sd = math.sqrt(var_of_mean) if math.isfinite(var_of_mean) else math.nan
+    return mean - z * sd, mean + z * sd
 
 
 def aggregate_rms(scores: dict[str, float]) -> float:
