@@ -108,6 +108,11 @@ WHY = (
 PAPER_T5 = {"param": (3.3, 0.5, 14.6, 1.5), "gp": (1.8, 0.2, 9.8, 1.1), "egp": (1.6, 0.2, 9.6, 1.3)}
 
 
+def _big(x: float, fmt: str = "{:.1f}") -> str:
+    """``fmt``, or powers of ten for the astronomic values of a collapsed particle cloud."""
+    return f"{x:.1e}" if abs(x) >= 1e5 else fmt.format(x)
+
+
 def _ms(v: list[float], fmt: str = "{:.2f}") -> str:
     return f"{fmt.format(v[0])} ± {fmt.format(v[1])}"
 
@@ -170,8 +175,8 @@ def _tables7_9(res: dict) -> list[str]:
             v = tr[f"{f}/{k}"]
             imp = 100 * (1 - v["aggregate_rms"][0] / base)
             lines.append(
-                f"| {f.upper()} | {k} | {_ms(v['aggregate_rms'])} | {imp:.0f}% | {v['mll'][0]:.1f} | "
-                f"{v['step_ms'][0]:.2f} | {v['nees'][0]:.1f} | {v['nis_per_dof'][0]:.2f} | "
+                f"| {f.upper()} | {k} | {_ms(v['aggregate_rms'])} | {imp:.0f}% | {_big(v['mll'][0])} | "
+                f"{v['step_ms'][0]:.2f} | {_big(v['nees'][0])} | {_big(v['nis_per_dof'][0], '{:.2f}')} | "
                 f"{v['failed'][0]:.2f} |"
             )
     return [*lines, "", *_bands(res), *_scales_line(res)]
