@@ -1,5 +1,5 @@
 """Noise calibration: the scaled models, their file, the NEES-matching process-noise choice
-and the held-out observation-noise scales; the NEES/NIS consistency bands."""
+and the held-out observation-noise scales."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from agents.recorder import collect_flight
-from agents.tracking import consistency_band, consistent_variances
 from agents.training import (
     TrainSettings,
     calibrate_noise,
@@ -109,17 +108,3 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
     np.testing.assert_allclose(obs.scale, np.maximum(chosen, 1.0))
     assert read_observation_scales(tmp_path)["param"].shape == (10,)
     assert read_noise_scales(tmp_path) == {}  # process scales untouched
-
-
-def test_consistency_bands_match_simulated_consistent_filters() -> None:
-    rng = np.random.default_rng(0)
-    steps, reps = 200, 4000
-    dof = rng.choice([0, 5, 10], size=steps)
-    nees_var, nis_var = consistent_variances(steps, dof)
-    nees = rng.chisquare(12, size=(reps, steps)).mean(axis=1)  # a consistent filter's averages
-    has = dof > 0
-    nis = (rng.chisquare(np.where(has, dof, 1), size=(reps, steps))[:, has] / dof[has]).mean(axis=1)
-    assert nees.var() == pytest.approx(nees_var, rel=0.1) and nis.var() == pytest.approx(nis_var, rel=0.1)
-    lo, hi = consistency_band(12.0, nees_var)
-    assert np.mean((nees >= lo) & (nees <= hi)) == pytest.approx(0.95, abs=0.015)
-    assert np.isnan(consistent_variances(10, np.zeros(10, np.int64))[1])

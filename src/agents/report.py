@@ -218,11 +218,8 @@ def _scales_line(res: dict) -> list[str]:
         lines += [f"Process-noise scales per fold: {cells}.", ""]
     obs = res.get("observation_scales") or []
     if any(obs):
-        cells = ", ".join(
-            f"{k} {np.median(v):.2g}/{np.max(v):.2g}"
-            for k in _kinds(obs)
-            for v in [np.concatenate([np.ravel(f[k]) for f in obs if k in f])]
-        )
+        pooled = {k: np.concatenate([np.ravel(f[k]) for f in obs if k in f]) for k in _kinds(obs)}
+        cells = ", ".join(f"{k} {np.median(v):.2g}/{np.max(v):.2g}" for k, v in pooled.items())
         lines += [f"Observation-noise scales (median/largest over outputs and folds): {cells}.", ""]
     return lines
 

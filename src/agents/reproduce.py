@@ -17,7 +17,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 from tqdm import tqdm
 
 from agents.landmark import run_landmark_experiment
@@ -229,9 +228,3 @@ def _fig3(fold: tuple[Flight, Flight], s: ReproduceSettings, settings: TrainSett
     bar.close()
     plot_data_sparsity(res, out / "fig3_training_points.png")
     return res
-
-
-def nees_band(dof: int, steps: int) -> tuple[float, float]:
-    """95% band of the time-averaged NEES (or NIS) of a consistent filter."""
-    lo, hi = chi2.ppf([0.025, 0.975], dof * steps)
-    return float(lo / steps), float(hi / steps)

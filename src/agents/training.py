@@ -173,7 +173,6 @@ def train_models(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    original = flights[0]
     unknown = set(kinds) - set(MODEL_KINDS)
     if unknown:
         raise ValueError(f"unknown model kinds {sorted(unknown)}; choose from {MODEL_KINDS}")
@@ -181,8 +180,8 @@ def train_models(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     held_out = calibration_rows(flights[0], settings.calibration_seconds)
-    flights = [without_frames(flights[0], held_out), *flights[1:]]  # transitions are all kept
-    ode, cam = train_parametric(flights)
+    framed = [without_frames(flights[0], held_out), *flights[1:]]  # for the observation models
+    ode, cam = train_parametric(framed)
     save_parametric(ode, cam, out / "parametric.npz")
     timings["param"] = time.perf_counter() - t0
     inp, change = prediction_data(flights)
@@ -192,7 +191,7 @@ def train_models(
     rows = _subsample(len(inp), settings.n_points, rng)
     obs_sets = []
     for k in range(flights[0].n_cameras):
-        xs, zs = observation_data(flights, k)
+        xs, zs = observation_data(framed, k)
         sel = _subsample(len(xs), settings.n_points, rng)
         obs_sets.append((xs[sel], zs[sel]))
     for kind in (k for k in kinds if k != "param"):
@@ -228,8 +227,8 @@ def train_models(
             on_progress(kind, None)
     if settings.calibration_seconds > 0:
         t0 = time.perf_counter()
-        calibrate_observation(original, out, kinds, rows=held_out)
-        calibrate_noise(original, out, kinds, seconds=settings.calibration_seconds)
+        calibrate_observation(flights[0], out, kinds, rows=held_out)
+        calibrate_noise(flights[0], out, kinds, seconds=settings.calibration_seconds)
         timings["calibration"] = time.perf_counter() - t0
     return timings
 
@@ -296,14 +295,14 @@ def calibrate_noise(
     the aggregate RMS by 12%, 9% and 7%.
     """
     from agents.tracking import track_flight
-    from estimator_service.factory import load_models, make_filter
+    from estimator_service.factory import apply_calibration, load_models, make_filter
     from estimator_service.models.calibration import NoiseScaledPrediction, write_noise_scales
 
     rows = slice(0, max(2, round(seconds / flight.metadata["dt"])))
     chosen, nees_at = {}, {}
     for kind in kinds:
-        pred, _ = load_models(folder, kind, calibrated=False)
-        _, obs = load_models(folder, kind)  # with its observation-noise scales, if any
+        raw = load_models(folder, kind, calibrated=False)
+        pred, obs = apply_calibration(folder, kind, *raw, process=False)  # observation scales only
         nees = []
         for k in scales:
             r = track_flight(make_filter("ekf", NoiseScaledPrediction(pred, k), obs), flight, rows=rows)

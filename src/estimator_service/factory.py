@@ -36,6 +36,7 @@ from estimator_service.models.gp_models import (
 __all__ = [
     "FILTER_KINDS",
     "MODEL_KINDS",
+    "apply_calibration",
     "blimp_wrapping",
     "build_filter",
     "load_models",
@@ -116,9 +117,16 @@ def load_models(
             extra_p = {"mean_function": lambda q: ode.change(q[:, :STATE_DIM], q[:, STATE_DIM:])}
         pred = GPPredictionModel(load_gp(folder / f"prediction_{kind}.npz", **extra_p), STATE_DIM)
         obs = _observation(folder, kind, cam)
-    if not calibrated:
-        return pred, obs
-    scale = read_noise_scales(folder).get(kind, 1.0)
+    return apply_calibration(folder, kind, pred, obs) if calibrated else (pred, obs)
+
+
+def apply_calibration(
+    folder: str | os.PathLike[str], kind: str, pred: PredictionModel, obs: ObservationModel,
+    *, process: bool = True,
+) -> tuple[PredictionModel, ObservationModel]:  # fmt: skip
+    """``pred`` and ``obs`` with the noise scales of ``folder/calibration.json`` for ``kind``
+    (where there are any); ``process=False`` leaves the prediction noise as it is."""
+    scale = read_noise_scales(folder).get(kind, 1.0) if process else 1.0
     obs_scale = read_observation_scales(folder).get(kind)
     return (
         pred if scale == 1.0 else NoiseScaledPrediction(pred, scale),

@@ -110,36 +110,35 @@ def _read(folder: str | os.PathLike[str]) -> dict:
         raise ValueError(f"{os.fspath(path)!r}: expected a JSON object ({e})") from e
 
 
-def _checked(folder: str | os.PathLike[str], key: str, values: dict[str, FloatArray]) -> None:
-    bad = {k: v.tolist() for k, v in values.items() if not np.all(np.isfinite(v) & (v > 0))}
+def _section(folder: str | os.PathLike[str], key: str, convert, want: str) -> dict[str, FloatArray]:
+    """``{kind: convert(value)}`` of one section of ``folder/calibration.json``, each value
+    checked to be finite and > 0."""
+    path = os.fspath(Path(folder) / CALIBRATION_FILE)
+    try:
+        out = {str(k): convert(v) for k, v in _read(folder).get(key, {}).items()}
+    except (ValueError, TypeError, AttributeError) as e:
+        raise ValueError(f"{path!r}: expected {{'{key}': {want}}} ({e})") from e
+    bad = {k: v.tolist() for k, v in out.items() if not np.all(np.isfinite(v) & (v > 0))}
     if bad:
-        path = os.fspath(Path(folder) / CALIBRATION_FILE)
         raise ValueError(f"{path!r}: {key} values must be finite and > 0, got {bad}")
+    return out
 
 
 def read_noise_scales(folder: str | os.PathLike[str]) -> dict[str, float]:
     """``{model kind: process-noise scale}`` from ``folder/calibration.json`` (empty when
     there is none)."""
-    try:
-        scales = {str(k): float(v) for k, v in _read(folder).get("noise_scale", {}).items()}
-    except (ValueError, TypeError, AttributeError) as e:
-        path = os.fspath(Path(folder) / CALIBRATION_FILE)
-        raise ValueError(f"{path!r}: expected {{'noise_scale': {{kind: number}}}} ({e})") from e
-    _checked(folder, "noise_scale", {k: np.array(v) for k, v in scales.items()})
-    return scales
+    scales = _section(folder, "noise_scale", lambda v: np.array(float(v)), "{kind: number}")
+    return {k: float(v) for k, v in scales.items()}
 
 
 def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:
     """``{model kind: observation-noise scales (m,)}`` from ``folder/calibration.json``."""
-    try:
-        raw = _read(folder).get("observation_noise_scale", {})
-        scales = {str(k): np.array(v, dtype=np.float64).reshape(-1) for k, v in raw.items()}
-    except (ValueError, TypeError, AttributeError) as e:
-        path = os.fspath(Path(folder) / CALIBRATION_FILE)
-        want = "{'observation_noise_scale': {kind: [numbers]}}"
-        raise ValueError(f"{path!r}: expected {want} ({e})") from e
-    _checked(folder, "observation_noise_scale", scales)
-    return scales
+    return _section(
+        folder,
+        "observation_noise_scale",
+        lambda v: np.array(v, dtype=np.float64).reshape(-1),
+        "{kind: [numbers]}",
+    )
 
 
 def write_noise_scales(
