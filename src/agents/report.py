@@ -58,11 +58,12 @@ WHY = (
         "(EGP), 42.0 (hetGP) and 14.0 (sparse) against the parametric PF's 15.7; with it, "
         "two full runs that differ only in their training draws gave 20.4 and 24.9 (GP), "
         "14.4 and 20.7 (EGP), 23.8 and 27.2 (hetGP), 11.9 and 15.3 (sparse) against 17.1. "
-        "What is left is weight degeneracy at 500 particles in a 12-D state: over the first "
-        "30 s of a segment the effective sample size on camera steps had a median of 31 "
-        "(fold 0) and 18 (fold 3) for the GP-PF, against 136 and 116 for the parametric PF. "
-        "The GP's process noise is narrow near its training data, so few particles land near "
-        "the truth. An exact-GP PF step costs 0.16-0.19 s at 500 particles, so more particles "
+        "What is left is weight degeneracy at 500 particles in a 12-D state: with the first "
+        "calibrated run's models, over the first 30 s of a segment, the effective sample size "
+        "on camera steps had a median of 31 (fold 0) and 18 (fold 3) for the GP-PF, against "
+        "136 and 116 for the parametric PF. Our guess, not measured, is that the GP's process "
+        "noise is too narrow near its training data for many particles to land near the "
+        "truth. An exact-GP PF step costs 0.16-0.19 s at 500 particles, so more particles "
         "were not tried. A progressive-correction update (tempered likelihood with "
         "resample-and-move stages) was tried earlier and made every PF diverge. Why the hetGP "
         "PF trails the EGP PF we have not found.",
@@ -84,7 +85,7 @@ WHY = (
         "enough to cover every larger error. Left turns share every input but the tail "
         "command with the rest of the flight, and the GP extrapolates from right turns and "
         "straight flight with a long length scale on that input. Across full runs the truth "
-        "stayed within 3 sigma on 72-97% of those steps (95% is asked), and on 98-99% of "
+        "stayed within 3 sigma on 72-97% of those steps (95% is asked), and on 93-98% of "
         "all steps with all data.",
     ),
     (

@@ -255,8 +255,8 @@ def calibrate_observation(
     observation model was trained on), clipped to ``[floor, cap]`` (1 where an output has
     fewer than ``min_frames`` frames); written to ``folder/calibration.json``.
 
-    A consistent model gives 1. Measured on a held-out blimp block with the paper-size exact
-    GP: 5.3 and 6.1 for camera 1's ellipse position, 0.8-2.1 elsewhere.
+    A consistent model gives 1. The committed paper-size run (exact GP, four folds) got
+    1.3-6.7 for camera 1's ellipse position and 1.0-5.1 for the other outputs.
     """
     from estimator_service.factory import load_models
     from estimator_service.models.calibration import write_noise_scales

@@ -9,8 +9,9 @@ flights so that the filter's average NEES matches the state dimension, corrects 
 ``calibration.json`` and applied by :func:`estimator_service.factory.load_models`.
 
 Observation GPs are overconfident in another way: their variance is smallest on their own
-training frames, and held-out states lie between them (held-out blimp block, paper-size
-GP: ellipse-position errors 2.3-2.5x the predicted standard deviation for one camera).
+training frames, and held-out states lie between them (paper-size GP, first held-out blimp
+block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
+camera).
 A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
 particles (:func:`agents.training.calibrate_observation` measures it on a stretch of the
 training flight kept out of the observation training set; one scale per output).
