@@ -293,6 +293,32 @@ def test_regularised_resampling_keeps_the_cloud_diverse_and_consistent() -> None
     np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.5)
 
 
+def test_kalman_roughening_keeps_the_gaussian_posterior_spread_under_a_sharp_likelihood() -> None:
+    """A likelihood far sharper than the cloud leaves one particle with all the weight: the
+    posterior-covariance kernel then collapses the cloud, the Kalman kernel keeps the
+    spread the closed-form filter has (times Silverman's bandwidth) in the unobserved
+    velocities."""
+    sharp = LinearGaussianObservation(H[:2], np.array([1e-10, 1e-10]))
+    u, z, valid = np.zeros(2), np.array([0.4, -0.1]), np.ones(2, bool)
+    m = 4000
+    spread = {}
+    for cov_kind in ("posterior", "kalman"):
+        pf = PF(PRED, sharp, n_particles=m, resample_below=1.0, roughen=1.0, roughen_cov=cov_kind)
+        rng = np.random.default_rng(5)
+        belief, info = pf.step(pf.initial(PRIOR, rng), u, z, valid, rng)
+        assert info.ess < 2.0
+        spread[cov_kind] = belief.particles[:, 2:].std(axis=0)
+    prior_cov = A @ PRIOR.cov @ A.T + np.diag(Q)
+    hs = H[:2]
+    k = prior_cov @ hs.T @ np.linalg.inv(hs @ prior_cov @ hs.T)
+    post = prior_cov - k @ hs @ prior_cov
+    h = (4.0 / (m * 6)) ** (1.0 / 8)
+    np.testing.assert_allclose(spread["kalman"], h * np.sqrt(np.diag(post)[2:]), rtol=0.1)
+    assert np.all(spread["posterior"] < 0.01 * spread["kalman"])
+    with pytest.raises(ValueError, match="roughen_cov"):
+        PF(PRED, OBS, roughen_cov="prior")
+
+
 def test_batched_ekf_step_equals_one_blimp_at_a_time() -> None:
     """The service batches many blimps' EKF steps into one GP call: same beliefs, any
     camera subset per blimp (none, one camera, both), up to rounding."""

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from estimator_service.filters.common import (
@@ -47,8 +48,15 @@ class PF:
         Resample when ``ESS < resample_below * M`` (1.0 resamples every step, as Table 1).
     roughen
         Regularised resampling: after resampling, move particles by ``N(0, (roughen h)^2 C)``
-        with ``C`` the weighted particle covariance and ``h`` Silverman's bandwidth, so the
-        cloud does not collapse onto a few particles (0 = Table 1 as written).
+        with ``h`` Silverman's bandwidth, so the cloud does not collapse onto a few
+        particles (0 = Table 1 as written).
+    roughen_cov
+        ``C`` for the roughening: ``"posterior"``, the weighted particle covariance after the
+        update, or ``"kalman"``, the Kalman-updated covariance of the predicted cloud
+        (``P - Pxz S^-1 Pxz^T`` from the particles' predicted observations). When a sharp
+        likelihood leaves one particle with almost all the weight, the weighted covariance
+        is nearly zero and the cloud collapses onto that particle; the Kalman covariance
+        keeps the spread a Gaussian filter would have.
     """
 
     prediction: PredictionModel
@@ -57,7 +65,12 @@ class PF:
     n_particles: int = 2000
     resample_below: float = 0.5
     roughen: float = 0.0
+    roughen_cov: str = "posterior"
     name: str = "PF"
+
+    def __post_init__(self) -> None:
+        if self.roughen_cov not in ("posterior", "kalman"):
+            raise ValueError(f"roughen_cov must be 'posterior' or 'kalman', got {self.roughen_cov!r}")
 
     @property
     def _wrap(self) -> Wrapping:
@@ -92,7 +105,7 @@ class PF:
         zs, var = out.mean[:, idx], out.var[:, idx]
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zs, idx)
         loglik = -0.5 * np.sum(r * r / var + np.log(2 * math.pi * var), axis=1)
-        nis = self._nis(prior.weights, zs, var, np.asarray(z, dtype=np.float64)[idx], idx)
+        nis, kalman_cov = self._gaussian_update(prior, zs, var, np.asarray(z, dtype=np.float64)[idx], idx)
         logw = prior.log_weights + loglik
         if not np.any(np.isfinite(logw)) or not finite(prior.particles):
             return prior, StepInfo(nis, idx.size, True, prior.ess)
@@ -104,25 +117,36 @@ class PF:
             keep = systematic_resample(post.weights, rng)
             moved = post.particles[keep]
             if self.roughen > 0:
-                moved = self._roughen(post, moved, rng)
+                cov = kalman_cov if self.roughen_cov == "kalman" else self.gaussian(post).cov
+                moved = self._roughen(moved, cov, rng)
             post = ParticleBelief(moved, np.full(keep.size, -math.log(keep.size)))
         return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, resampled)
 
-    def _roughen(self, post: ParticleBelief, moved: FloatArray, rng: np.random.Generator) -> FloatArray:
+    def _roughen(self, moved: FloatArray, cov: FloatArray, rng: np.random.Generator) -> FloatArray:
         m, n = moved.shape
         h = self.roughen * (4.0 / (m * (n + 2))) ** (1.0 / (n + 4))
-        l = make_pd(self.gaussian(post).cov)[1]
+        l = make_pd(cov)[1]
         return self._wrap.state_value(moved + h * rng.standard_normal(moved.shape) @ l.T)
 
-    def _nis(self, w: FloatArray, zs: FloatArray, var: FloatArray, z: FloatArray, idx) -> float:
-        """NIS of ``z`` under the particles' predicted observation distribution."""
+    def _gaussian_update(
+        self, prior: ParticleBelief, zs: FloatArray, var: FloatArray, z: FloatArray, idx
+    ) -> tuple[float, FloatArray]:
+        """Moments of the predicted cloud: the NIS of ``z (q,)`` under the particles' predicted
+        observations ``zs (M, q)`` (variances ``var (M, q)``) and the Kalman-updated state
+        covariance ``(n, n)`` (the prior covariance when ``S`` is not positive definite)."""
+        w = prior.weights
         zhat = self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
         dz = self._wrap.obs_diff(zs - zhat, idx)
+        dx = self._wrap.state_diff(prior.particles - self._wrap.circular_mean(prior.particles, w))
+        pxx = (dx * w[:, None]).T @ dx
         s = (dz * w[:, None]).T @ dz + np.diag(w @ var)
         try:
-            return nis_from_cholesky(np.linalg.cholesky(s), self._wrap.obs_diff(z - zhat, idx))
+            ls = np.linalg.cholesky(s)
         except np.linalg.LinAlgError:
-            return math.nan
+            return math.nan, pxx
+        pxz = (dx * w[:, None]).T @ dz
+        v = sla.solve_triangular(ls, pxz.T, lower=True, check_finite=False)  # L^-1 Pxz^T
+        return nis_from_cholesky(ls, self._wrap.obs_diff(z - zhat, idx)), pxx - v.T @ v
 
     def step(
         self, belief: ParticleBelief, u: FloatArray, z: FloatArray | None,
