@@ -8,8 +8,10 @@ model folder; ``gpbf serve`` runs as a separate process.
    same run; overhead = p50 difference (target <= 0.5 ms). Also: round trip minus the
    service's own step time (``transport_p50_ms``) and, as the floor, a bare zenoh
    queryable in another process with the same worker hand-off spinning for the same time
-   (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``). The same round trip with the sparse
-   models (``sparse_overhead_p50_ms``) shows what the exact GP's cache footprint adds.
+   (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``), and the same with the echo's work
+   reading as many MB as the exact GP's factors (``zenoh_floor_streaming_p50_ms``). The same
+   round trip with the sparse models (``sparse_overhead_p50_ms``) shows what the exact GP's
+   cache footprint adds.
 2. Blimps at 4 Hz: N clients each send one GP-EKF step every 250 ms (asynchronous
    queries, staggered); the largest N whose p99 latency stays under 50 ms (target >= 200),
    for the sparse GP (``blimps_at_4hz``) and the exact GP.
@@ -108,12 +110,24 @@ def round_trips(
     return np.array(rtt[5:]) * 1e3, np.array(loc[5:]) * 1e3, np.array(served[5:]) * 1e3
 
 
-def echo_floor(work_ms: float, n: int) -> float:
-    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query."""
+def factor_mb(models: Path, kind: str = "gp") -> float:
+    """MB of Cholesky factors one step reads (lower triangles of every stored factor)."""
+    total = 0
+    for path in models.glob(f"*_{kind}*.npz"):
+        with np.load(path) as f:
+            total += sum(f[k].nbytes // 2 for k in f.files if k.endswith("chol_t"))
+    return total / 2**20
+
+
+def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
+    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query.
+
+    With ``stream_mb`` the work reads that many MB over and over instead of spinning.
+    """
     port = free_port()
     echo = Path(__file__).with_name("zenoh_echo.py")
     proc = subprocess.Popen(
-        [sys.executable, str(echo), str(port), str(work_ms / 1e3)],
+        [sys.executable, str(echo), str(port), str(work_ms / 1e3), str(stream_mb)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert "ready" in proc.stdout.readline()
@@ -220,6 +234,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 floor = echo_floor(float(np.median(served)), n_rtt)
                 res[f"{filt}_zenoh_floor_ms"] = floor
                 print(f"  bare zenoh query, same hand-off and work: {floor:.3f} ms over the work")
+                if filt == "ekf":
+                    mb = factor_mb(models)
+                    cold = echo_floor(float(np.median(served)), n_rtt, mb)
+                    res["zenoh_floor_streaming_ms"] = cold
+                    print(f"  ... with the work reading {mb:.0f} MB as the GP step does: {cold:.3f} ms")
                 print(
                     f"  service-side step p50 {np.median(served):.3f} ms; "
                     f"round trip minus it (zenoh, queue, encoding) p50 {np.median(rtt - served):.3f} ms"
@@ -248,6 +267,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "ukf_overhead_p50_ms": round(res["ukf_overhead_p50_ms"], 3),
         "transport_p50_ms": round(res["ekf_transport_p50_ms"], 3),
         "zenoh_floor_p50_ms": round(res["ekf_zenoh_floor_ms"], 3),
+        "zenoh_floor_streaming_p50_ms": round(res["zenoh_floor_streaming_ms"], 3),
         "sparse_overhead_p50_ms": round(res["sparse_overhead_p50_ms"], 3),
         "sparse_transport_p50_ms": round(res["sparse_transport_p50_ms"], 3),
         "blimps_at_4hz": best_sparse,
