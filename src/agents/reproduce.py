@@ -1,8 +1,9 @@
 """``gpbf reproduce``: the paper's experiments (Sect. 6) on simulated flights.
 
 Tables 5/6 (one-step prediction and observation errors), Tables 7-9 (tracking with
-UKF/EKF/PF x Param/GP/EGP/hetGP/sparse: RMS improvement over the parametric filter, mean
-log-likelihood, time per step), Fig. 4 (no training data with the tail pushing left),
+UKF/EKF/PF x Param/GP/EGP/hetGP/sparse: RMS improvement over the parametric filter,
+per state group and averaged over the groups as Table 7 does, mean log-likelihood, time
+per step), Fig. 4 (no training data with the tail pushing left),
 Table 10 (the synthetic landmark robot) and filter consistency (NEES, NIS), with k-fold
 cross-validation over contiguous blocks of one long scripted flight.
 """

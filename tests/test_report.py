@@ -1,0 +1,38 @@
+"""The report's Table 7 measure and the orderings it checks."""
+
+from __future__ import annotations
+
+import pytest
+
+from agents.report import _filter_checks, improvement
+
+
+def _row(p: float, xi: float, v: float, w: float, step: float = 1.0) -> dict:
+    row = {"position_mm": [p, 0.0], "orientation_deg": [xi, 0.0], "velocity_mm_s": [v, 0.0]}
+    row |= {"ang_velocity_deg_s": [w, 0.0], "step_ms": [step, 0.0]}
+    return row | {"aggregate_rms": [(p + xi + v + w) / 4, 0.0]}
+
+
+def test_improvement_averages_the_groups_not_the_mixed_unit_sum() -> None:
+    # the GP halves the position error (mm) but doubles the orientation error (deg)
+    tr = {"ekf/param": _row(40.0, 1.0, 20.0, 1.0), "ekf/gp": _row(20.0, 2.0, 20.0, 1.0)}
+    assert improvement(tr, "ekf/gp", "ekf/param") == pytest.approx((50.0 - 100.0) / 4)
+    aggregate_gain = 1 - tr["ekf/gp"]["aggregate_rms"][0] / tr["ekf/param"]["aggregate_rms"][0]
+    assert aggregate_gain > 0.2  # the summed RMS would call this a 29% improvement
+
+
+def test_checks_use_table_7_measure_for_the_20_percent_claim() -> None:
+    tr = {
+        "ukf/param": _row(40.0, 1.0, 20.0, 1.0),
+        "ukf/gp": _row(20.0, 1.1, 15.0, 1.1, step=10.0),  # (50 - 10 + 25 - 10) / 4 = 13.75%
+        "ukf/egp": _row(16.0, 0.8, 14.0, 0.9),  # 35%
+        "ukf/sparse": _row(21.0, 1.1, 15.0, 1.1, step=1.0),
+    }
+    verdicts = {claim.split(" (")[0]: ok for claim, ok in _filter_checks(tr, "ukf")}
+    assert verdicts == {
+        "UKF: GP improves over Param by >= 20%": False,
+        "UKF: EGP at least as good as GP": True,
+        "UKF: sparse within 10% of exact GP RMS and >= 5x faster": True,
+    }
+    tr["ukf/gp"] = _row(20.0, 0.9, 15.0, 0.9, step=10.0)  # (50 + 10 + 25 + 10) / 4 = 23.75%
+    assert _filter_checks(tr, "ukf")[0][1]
