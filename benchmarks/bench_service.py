@@ -122,7 +122,8 @@ def factor_mb(models: Path, kind: str = "gp") -> float:
 def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
     """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query.
 
-    With ``stream_mb`` the work reads that many MB over and over instead of spinning.
+    With ``stream_mb`` the work reads that many MB once (then spins for the rest); the
+    echo reports how long its work took, and that is what is subtracted.
     """
     port = free_port()
     echo = Path(__file__).with_name("zenoh_echo.py")
@@ -137,13 +138,13 @@ def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
     try:
         for _ in range(n):
             t0 = time.perf_counter()
-            session.get("echo/x", payload=b"y" * 150).recv()
-            out.append(time.perf_counter() - t0)
+            reply = session.get("echo/x", payload=b"y" * 150).recv()
+            out.append(time.perf_counter() - t0 - float(reply.ok.payload.to_bytes().decode()))
     finally:
         session.close()
         proc.stdin.close()
         proc.wait(timeout=20)
-    return float(np.median(np.array(out[5:]) * 1e3) - work_ms)
+    return float(np.median(np.array(out[5:]) * 1e3))
 
 
 def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> float:
@@ -244,7 +245,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                     f"round trip minus it (zenoh, queue, encoding) p50 {np.median(rtt - served):.3f} ms"
                 )
             # the same path with the small sparse models: how much of the overhead is the exact
-            # GP's 39 MB of factors evicting the transport's code and data from the caches
+            # GP's 68 MB of Cholesky factors evicting the transport's code and data from the caches
             rtt, loc, served = round_trips(session, models, "ekf", n_rtt, model="sparse")
             res["sparse_overhead_p50_ms"] = np.median(rtt) - np.median(loc)
             res["sparse_transport_p50_ms"] = np.median(rtt - served)

@@ -301,19 +301,23 @@ def test_kalman_roughening_keeps_the_gaussian_posterior_spread_under_a_sharp_lik
     sharp = LinearGaussianObservation(H[:2], np.array([1e-10, 1e-10]))
     u, z, valid = np.zeros(2), np.array([0.4, -0.1]), np.ones(2, bool)
     m = 4000
-    spread = {}
+    spread, clouds = {}, {}
     for cov_kind in ("posterior", "kalman"):
         pf = PF(PRED, sharp, n_particles=m, resample_below=1.0, roughen=1.0, roughen_cov=cov_kind)
         rng = np.random.default_rng(5)
         belief, info = pf.step(pf.initial(PRIOR, rng), u, z, valid, rng)
         assert info.ess < 2.0
         spread[cov_kind] = belief.particles[:, 2:].std(axis=0)
+        clouds[cov_kind] = np.cov(belief.particles.T)
     prior_cov = A @ PRIOR.cov @ A.T + np.diag(Q)
     hs = H[:2]
     k = prior_cov @ hs.T @ np.linalg.inv(hs @ prior_cov @ hs.T)
     post = prior_cov - k @ hs @ prior_cov
     h = (4.0 / (m * 6)) ** (1.0 / 8)
     np.testing.assert_allclose(spread["kalman"], h * np.sqrt(np.diag(post)[2:]), rtol=0.1)
+    # the observed positions are pinned by the update (posterior sd ~0): the whole roughened
+    # cloud has the Kalman covariance; the prior's would spread the positions by h * 0.55
+    np.testing.assert_allclose(clouds["kalman"], h**2 * post, atol=0.05 * h**2 * post.diagonal().max())
     assert np.all(spread["posterior"] < 0.01 * spread["kalman"])
     with pytest.raises(ValueError, match="roughen_cov"):
         PF(PRED, OBS, roughen_cov="prior")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from agents.report import _filter_checks, improvement
+from agents.report import _checks, _filter_checks, improvement
+from agents.report_why import WHY
 
 
 def _row(p: float, xi: float, v: float, w: float, step: float = 1.0) -> dict:
@@ -36,3 +37,24 @@ def test_checks_use_table_7_measure_for_the_20_percent_claim() -> None:
     }
     tr["ukf/gp"] = _row(20.0, 0.9, 15.0, 0.9, step=10.0)  # (50 + 10 + 25 + 10) / 4 = 23.75%
     assert _filter_checks(tr, "ukf")[0][1]
+
+
+def test_hetgp_is_not_best_when_the_parametric_filter_beats_every_gp() -> None:
+    tr = {
+        "pf/param": _row(20.0, 1.0, 20.0, 1.0),
+        "pf/gp": _row(40.0, 2.0, 40.0, 2.0),  # -100%
+        "pf/hetgp": _row(24.0, 1.2, 24.0, 1.2),  # -20%, best of the GPs
+    }
+    verdicts = {claim.split(" (")[0]: ok for claim, ok in _filter_checks(tr, "pf")}
+    assert verdicts["PF: hetGP best or tied"] is False
+
+
+def test_ukf_against_ekf_averages_the_groups_and_failed_claims_get_their_explanation() -> None:
+    # the UKF is 10% worse on both angles and 1% better on the mm groups: the mm-dominated
+    # aggregate RMS favours it, Table 7's group average does not
+    tr = {"ekf/gp": _row(20.0, 1.0, 20.0, 1.0), "ukf/gp": _row(19.8, 1.1, 19.8, 1.1)}
+    lines = _checks({"tracking": tr, "table5_6": {}})
+    row = next(line for line in lines if "GP-UKF edges out GP-EKF" in line)
+    assert row.endswith("| **no** |")
+    explanation = dict(WHY)["GP-UKF edges out"]
+    assert f"- {explanation}" in lines

@@ -215,7 +215,10 @@ def _filter_checks(tr: dict, f: str) -> list[tuple[str, bool]]:
         )
     if "hetgp" in imp:
         checks.append(
-            (f"{f.upper()}: hetGP best or tied ({imp['hetgp']:.0f}%)", imp["hetgp"] >= max(imp.values()) - 2)
+            (
+                f"{f.upper()}: hetGP best or tied ({imp['hetgp']:.0f}%)",
+                imp["hetgp"] >= max(0.0, *imp.values()) - 2,
+            )
         )
     if "sparse" in imp:
         rms = tr[f"{f}/sparse"]["aggregate_rms"][0] / tr[f"{f}/gp"]["aggregate_rms"][0]

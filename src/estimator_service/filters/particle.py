@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.linalg as sla
@@ -65,7 +66,7 @@ class PF:
     n_particles: int = 2000
     resample_below: float = 0.5
     roughen: float = 0.0
-    roughen_cov: str = "posterior"
+    roughen_cov: Literal["posterior", "kalman"] = "posterior"
     name: str = "PF"
 
     def __post_init__(self) -> None:
