@@ -11,7 +11,10 @@ model folder; ``gpbf serve`` runs as a separate process.
    (``zenoh_floor_p50_ms``, see ``zenoh_echo.py``), and the same with the echo's work
    reading as many MB as the exact GP's factors (``zenoh_floor_streaming_p50_ms``). The same
    round trip with the sparse models (``sparse_overhead_p50_ms``) shows what the exact GP's
-   cache footprint adds.
+   cache footprint adds. A timestamped service (``service_trace.py``) splits the GP-EKF
+   round trip into legs: zenoh's two (client to callback, reply to client:
+   ``zenoh_legs_p50_ms``) and the service's own code around the step (queue hand-off to a
+   worker, dispatch, handing the reply to zenoh: ``service_code_p50_ms``).
 2. Blimps at 4 Hz: N clients each send one GP-EKF step every 250 ms (asynchronous
    queries, staggered); the largest N whose p99 latency stays under 50 ms (target >= 200),
    for the sparse GP (``blimps_at_4hz``) and the exact GP.
@@ -68,12 +71,17 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_service(models: Path, port: int, model: str) -> subprocess.Popen:
+def start_service(models: Path, port: int, model: str, trace: Path | None = None) -> subprocess.Popen:
+    """``gpbf serve`` in another process; with ``trace``, the timestamped one (service_trace.py)."""
+    launcher = (
+        ["-m", "estimator_service"]
+        if trace is None
+        else [str(Path(__file__).with_name("service_trace.py")), str(trace)]
+    )
     proc = subprocess.Popen(
         [
             sys.executable,
-            "-m",
-            "estimator_service",
+            *launcher,
             "--models",
             str(models),
             "--model",
@@ -117,6 +125,34 @@ def round_trips(
         belief, _ = local.step(belief, u, z, np.ones(10, bool))
         loc.append(time.perf_counter() - t0)
     return tuple(np.array(x[WARM_UP:]) * 1e3 for x in (rtt, loc, served))
+
+
+def phases(models: Path, n: int) -> dict[str, float]:
+    """p50 (ms) of each leg of a GP-EKF round trip, from a timestamped service (one clock)."""
+    trace = models / "trace.json"
+    port = free_port()
+    proc = start_service(models, port, "gp", trace)
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    rng = np.random.default_rng(3)
+    c = EstimatorClient(session, "trace")
+    c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0, filter="ekf", model="gp")
+    sent = []
+    for k in range(n + WARM_UP):
+        u, z = rng.normal(size=3), rng.normal(size=10) * 0.3
+        t0 = time.perf_counter()
+        c.step(u, [[0, z[:5].tolist()], [1, z[5:].tolist()]], 0.25 * (k + 1))
+        sent.append((t0, time.perf_counter()))
+    session.close()
+    proc.terminate()
+    proc.wait(timeout=20)
+    send, recv = np.array(sent[WARM_UP:]).T
+    cb, worker, start, end, replied = np.array(json.loads(trace.read_text())[WARM_UP:]).T
+    legs = {
+        "zenoh_in": cb - send, "queue_hand_off": worker - cb, "dispatch": start - worker,
+        "step": end - start, "reply_to_zenoh": replied - end, "zenoh_out": recv - replied,
+    }  # fmt: skip
+    return {k: float(np.median(v) * 1e3) for k, v in legs.items()}
 
 
 def factor_mb(models: Path, kind: str = "gp") -> float:
@@ -266,6 +302,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             session.close()
             proc.terminate()
             proc.wait(timeout=20)
+        legs = phases(models, n_rtt)
+        print("GP-EKF round trip by leg (p50 ms): " + ", ".join(f"{k} {v:.3f}" for k, v in legs.items()))
         best_sparse, _ = capacity(models, "sparse", levels, seconds)
         best_exact, _ = capacity(models, "gp", [n for n in levels if n <= 100], seconds)
     out = {
@@ -278,6 +316,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "transport_p50_ms": round(res["ekf_transport_p50_ms"], 3),
         "zenoh_floor_p50_ms": round(res["ekf_zenoh_floor_ms"], 3),
         "zenoh_floor_streaming_p50_ms": round(res["zenoh_floor_streaming_ms"], 3),
+        "zenoh_legs_p50_ms": round(legs["zenoh_in"] + legs["zenoh_out"], 3),
+        "service_code_p50_ms": round(legs["queue_hand_off"] + legs["dispatch"] + legs["reply_to_zenoh"], 3),
         "sparse_overhead_p50_ms": round(res["sparse_overhead_p50_ms"], 3),
         "sparse_transport_p50_ms": round(res["sparse_transport_p50_ms"], 3),
         "blimps_at_4hz": best_sparse,
