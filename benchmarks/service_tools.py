@@ -1,0 +1,113 @@
+"""Helpers for ``bench_service``: the service process, its timestamped variant's legs and
+the bare zenoh floors it is compared with."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agents.bridge import EstimatorClient, open_session
+
+WARM_UP = 20  # round trips and steps run before measuring (the service's first ones are slow)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_service(models: Path, port: int, model: str, trace: Path | None = None) -> subprocess.Popen:
+    """``gpbf serve`` in another process; with ``trace``, the timestamped one (service_trace.py)."""
+    launcher = (
+        ["-m", "estimator_service"]
+        if trace is None
+        else [str(Path(__file__).with_name("service_trace.py")), str(trace)]
+    )
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            *launcher,
+            "--models",
+            str(models),
+            "--model",
+            model,
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert "ready" in proc.stdout.readline()
+    return proc
+
+
+def phases(models: Path, n: int) -> dict[str, float]:
+    """p50 (ms) of each leg of a GP-EKF round trip, from a timestamped service (one clock)."""
+    trace = models / "trace.json"
+    port = free_port()
+    proc = start_service(models, port, "gp", trace)
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    rng = np.random.default_rng(3)
+    c = EstimatorClient(session, "trace")
+    c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0, filter="ekf", model="gp")
+    sent = []
+    for k in range(n + WARM_UP):
+        u, z = rng.normal(size=3), rng.normal(size=10) * 0.3
+        t0 = time.perf_counter()
+        c.step(u, [[0, z[:5].tolist()], [1, z[5:].tolist()]], 0.25 * (k + 1))
+        sent.append((t0, time.perf_counter()))
+    session.close()
+    proc.terminate()
+    proc.wait(timeout=20)
+    send, recv = np.array(sent[WARM_UP:]).T
+    cb, worker, start, end, replied = np.array(json.loads(trace.read_text())[WARM_UP:]).T
+    legs = {
+        "zenoh_in": cb - send, "queue_hand_off": worker - cb, "dispatch": start - worker,
+        "step": end - start, "reply_to_zenoh": replied - end, "zenoh_out": recv - replied,
+    }  # fmt: skip
+    return {k: float(np.median(v) * 1e3) for k, v in legs.items()}
+
+
+def factor_mb(models: Path, kind: str = "gp") -> float:
+    """MB of Cholesky factors one step reads (lower triangles of every stored factor)."""
+    total = 0
+    for path in models.glob(f"*_{kind}*.npz"):
+        with np.load(path) as f:
+            total += sum(f[k].nbytes // 2 for k in f.files if k.endswith("chol_t"))
+    return total / 2**20
+
+
+def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
+    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query.
+
+    With ``stream_mb`` the work reads that many MB once (then spins for the rest); the
+    echo reports how long its work took, and that is what is subtracted.
+    """
+    port = free_port()
+    echo = Path(__file__).with_name("zenoh_echo.py")
+    proc = subprocess.Popen(
+        [sys.executable, str(echo), str(port), str(work_ms / 1e3), str(stream_mb)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert "ready" in proc.stdout.readline()
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    out = []
+    try:
+        for _ in range(n):
+            t0 = time.perf_counter()
+            reply = session.get("echo/x", payload=b"y" * 150).recv()
+            out.append(time.perf_counter() - t0 - float(reply.ok.payload.to_bytes().decode()))
+    finally:
+        session.close()
+        proc.stdin.close()
+        proc.wait(timeout=20)
+    return float(np.median(np.array(out[5:]) * 1e3))
