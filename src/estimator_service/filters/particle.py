@@ -84,9 +84,13 @@ class PF:
     def gaussian(self, belief: ParticleBelief) -> GaussianBelief:
         """Weighted mean (circular for angles) and covariance of the particles."""
         w = belief.weights
-        mean = self._wrap.circular_mean(belief.particles, w)
-        dev = self._wrap.state_diff(belief.particles - mean)
+        mean, dev = self._deviations(belief)
         return GaussianBelief(mean, make_pd((dev * w[:, None]).T @ dev)[0])
+
+    def _deviations(self, belief: ParticleBelief) -> tuple[FloatArray, FloatArray]:
+        """Weighted (circular) mean ``(n,)`` and the particles' deviations from it ``(M, n)``."""
+        mean = self._wrap.circular_mean(belief.particles, belief.weights)
+        return mean, self._wrap.state_diff(belief.particles - mean)
 
     def predict(self, belief: ParticleBelief, u: FloatArray, rng: np.random.Generator) -> ParticleBelief:
         """Step 4: ``x_m ~ x_m + N(GP_mu([x_m, u]), GP_Sigma([x_m, u]))``, all particles at once."""
@@ -104,9 +108,10 @@ class PF:
             return prior, StepInfo(ess=prior.ess)
         out = self.observation.observe(prior.particles)
         zs, var = out.mean[:, idx], out.var[:, idx]
-        r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zs, idx)
+        zi = np.asarray(z, dtype=np.float64)[idx]
+        r = self._wrap.obs_diff(zi - zs, idx)
         loglik = -0.5 * np.sum(r * r / var + np.log(2 * math.pi * var), axis=1)
-        nis, kalman_cov = self._gaussian_update(prior, zs, var, np.asarray(z, dtype=np.float64)[idx], idx)
+        nis, dz, ls = self._innovation(prior.weights, zs, var, zi, idx)
         logw = prior.log_weights + loglik
         if not np.any(np.isfinite(logw)) or not finite(prior.particles):
             return prior, StepInfo(nis, idx.size, True, prior.ess)
@@ -118,7 +123,11 @@ class PF:
             keep = systematic_resample(post.weights, rng)
             moved = post.particles[keep]
             if self.roughen > 0:
-                cov = kalman_cov if self.roughen_cov == "kalman" else self.gaussian(post).cov
+                cov = (
+                    self._kalman_cov(prior, dz, ls)
+                    if self.roughen_cov == "kalman"
+                    else self.gaussian(post).cov
+                )
                 moved = self._roughen(moved, cov, rng)
             post = ParticleBelief(moved, np.full(keep.size, -math.log(keep.size)))
         return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, resampled)
@@ -129,25 +138,32 @@ class PF:
         l = make_pd(cov)[1]
         return self._wrap.state_value(moved + h * rng.standard_normal(moved.shape) @ l.T)
 
-    def _gaussian_update(
-        self, prior: ParticleBelief, zs: FloatArray, var: FloatArray, z: FloatArray, idx
-    ) -> tuple[float, FloatArray]:
-        """Moments of the predicted cloud: the NIS of ``z (q,)`` under the particles' predicted
-        observations ``zs (M, q)`` (variances ``var (M, q)``) and the Kalman-updated state
-        covariance ``(n, n)`` (the prior covariance when ``S`` is not positive definite)."""
-        w = prior.weights
+    def _innovation(
+        self, w: FloatArray, zs: FloatArray, var: FloatArray, z: FloatArray, idx
+    ) -> tuple[float, FloatArray, FloatArray | None]:
+        """The NIS of ``z (q,)`` under the particles' predicted observations ``zs (M, q)``
+        (variances ``var (M, q)``), their deviations from their mean ``(M, q)`` and the
+        Cholesky factor of their covariance ``S (q, q)`` (NaN and None when ``S`` is not
+        positive definite)."""
         zhat = self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
         dz = self._wrap.obs_diff(zs - zhat, idx)
-        dx = self._wrap.state_diff(prior.particles - self._wrap.circular_mean(prior.particles, w))
-        pxx = (dx * w[:, None]).T @ dx
         s = (dz * w[:, None]).T @ dz + np.diag(w @ var)
         try:
             ls = np.linalg.cholesky(s)
         except np.linalg.LinAlgError:
-            return math.nan, pxx
-        pxz = (dx * w[:, None]).T @ dz
-        v = sla.solve_triangular(ls, pxz.T, lower=True, check_finite=False)  # L^-1 Pxz^T
-        return nis_from_cholesky(ls, self._wrap.obs_diff(z - zhat, idx)), pxx - v.T @ v
+            return math.nan, dz, None
+        return nis_from_cholesky(ls, self._wrap.obs_diff(z - zhat, idx)), dz, ls
+
+    def _kalman_cov(self, prior: ParticleBelief, dz: FloatArray, ls: FloatArray | None) -> FloatArray:
+        """Kalman-updated covariance ``P - Pxz S^-1 Pxz^T (n, n)`` of the predicted cloud, from
+        :meth:`_innovation`'s deviations and factor (``P`` alone when ``S`` had none)."""
+        dx = self._deviations(prior)[1]
+        weighted = dx * prior.weights[:, None]
+        pxx = weighted.T @ dx
+        if ls is None:
+            return pxx
+        v = sla.solve_triangular(ls, (weighted.T @ dz).T, lower=True, check_finite=False)  # L^-1 Pxz^T
+        return pxx - v.T @ v
 
     def step(
         self, belief: ParticleBelief, u: FloatArray, z: FloatArray | None,
