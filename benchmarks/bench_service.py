@@ -36,7 +36,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_filters as bf
-from service_tools import WARM_UP, echo_floor, factor_mb, free_port, phases, start_service
+from service_tools import (
+    WARM_UP,
+    echo_floor,
+    factor_mb,
+    free_port,
+    lockstep,
+    phases,
+    start_service,
+    step_inputs,
+)
 
 from agents.bridge import EstimatorClient, open_session
 from estimator_service.factory import build_filter, save_parametric
@@ -73,17 +82,10 @@ def round_trips(
     first ``WARM_UP`` of each are not counted.
     """
     rng = np.random.default_rng(1)
-    inputs = [(rng.normal(size=3), rng.normal(size=10) * 0.3) for _ in range(n + WARM_UP)]
-    c = EstimatorClient(client, f"rtt-{filt}-{model}")
+    inputs = step_inputs(rng, n + WARM_UP)
     mean = rng.normal(size=12) * 0.5
-    c.reset(mean, np.full(12, 0.1), t=0.0, filter=filt, model=model)
-    rtt, loc, served = [], [], []
-    for k, (u, z) in enumerate(inputs):
-        frames = [[0, z[:5].tolist()], [1, z[5:].tolist()]]
-        t0 = time.perf_counter()
-        reply = c.step(u, frames, 0.25 * (k + 1))
-        rtt.append(time.perf_counter() - t0)
-        served.append(reply["step_ms"] / 1e3)
+    times, served = lockstep(client, f"rtt-{filt}-{model}", filt, model, mean, inputs)
+    rtt, loc = times[:, 1] - times[:, 0], []
     local = build_filter(filt, model, models)
     belief = GaussianBelief(mean, np.eye(12) * 0.01)
     for u, z in inputs:

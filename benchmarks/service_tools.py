@@ -48,26 +48,43 @@ def start_service(models: Path, port: int, model: str, trace: Path | None = None
     return proc
 
 
+def step_inputs(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``n`` lock-step inputs: a control ``(3,)`` and two cameras' ellipses ``(10,)`` each."""
+    return [(rng.normal(size=3), rng.normal(size=10) * 0.3) for _ in range(n)]
+
+
+def lockstep(
+    session, blimp: str, filt: str, model: str, mean: np.ndarray, inputs: list
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reset ``blimp`` at ``mean`` and step it through ``inputs`` over zenoh: each step's send
+    and receive times ``(N, 2)`` and the service's own step times ``(N,)``, in seconds."""
+    c = EstimatorClient(session, blimp)
+    c.reset(mean, np.full(12, 0.1), t=0.0, filter=filt, model=model)
+    times, served = [], []
+    for k, (u, z) in enumerate(inputs):
+        t0 = time.perf_counter()
+        reply = c.step(u, [[0, z[:5].tolist()], [1, z[5:].tolist()]], 0.25 * (k + 1))
+        times.append((t0, time.perf_counter()))
+        served.append(reply["step_ms"] / 1e3)
+    return np.array(times), np.array(served)
+
+
 def phases(models: Path, n: int) -> dict[str, float]:
     """p50 (ms) of each leg of a GP-EKF round trip, from a timestamped service (one clock)."""
     trace = models / "trace.json"
     port = free_port()
     proc = start_service(models, port, "gp", trace)
     session = open_session([f"tcp/127.0.0.1:{port}"])
-    time.sleep(0.3)
-    rng = np.random.default_rng(3)
-    c = EstimatorClient(session, "trace")
-    c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0, filter="ekf", model="gp")
-    sent = []
-    for k in range(n + WARM_UP):
-        u, z = rng.normal(size=3), rng.normal(size=10) * 0.3
-        t0 = time.perf_counter()
-        c.step(u, [[0, z[:5].tolist()], [1, z[5:].tolist()]], 0.25 * (k + 1))
-        sent.append((t0, time.perf_counter()))
-    session.close()
-    proc.terminate()
-    proc.wait(timeout=20)
-    send, recv = np.array(sent[WARM_UP:]).T
+    try:
+        time.sleep(0.3)
+        rng = np.random.default_rng(3)
+        mean = rng.normal(size=12) * 0.5
+        times = lockstep(session, "trace", "ekf", "gp", mean, step_inputs(rng, n + WARM_UP))[0]
+    finally:
+        session.close()
+        proc.terminate()
+        proc.wait(timeout=20)
+    send, recv = times[WARM_UP:].T
     cb, worker, start, end, replied = np.array(json.loads(trace.read_text())[WARM_UP:]).T
     legs = {
         "zenoh_in": cb - send, "queue_hand_off": worker - cb, "dispatch": start - worker,
