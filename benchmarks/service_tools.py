@@ -89,6 +89,8 @@ def phases(models: Path, n: int) -> dict[str, float]:
     legs = {
         "zenoh_in": cb - send, "queue_hand_off": worker - cb, "dispatch": start - worker,
         "step": end - start, "reply_to_zenoh": replied - end, "zenoh_out": recv - replied,
+        "zenoh": (cb - send) + (recv - replied),  # both legs of each round trip
+        "service_code": (worker - cb) + (start - worker) + (replied - end),
     }  # fmt: skip
     return {k: float(np.median(v) * 1e3) for k, v in legs.items()}
 

@@ -5,7 +5,8 @@ unchanged except that, for every ``step`` query, it records ``time.perf_counter(
 same monotonic clock in every process on the machine) when zenoh hands the query to the
 service's callback, when a worker picks it up, when the step starts and ends, and when the
 reply has been handed back to zenoh. On shutdown it writes them to ``OUT.json``, one
-``[callback, worker, step_start, step_end, replied]`` row per step.
+``[callback, worker, step_start, step_end, replied]`` row per step. The timestamps of the
+query in flight share one slot, so drive it with one lock-step query at a time.
 """
 
 from __future__ import annotations
