@@ -20,3 +20,13 @@ def test_consistency_bands_match_simulated_consistent_filters() -> None:
     lo, hi = consistency_band(12.0, nees_var)
     assert np.mean((nees >= lo) & (nees <= hi)) == pytest.approx(0.95, abs=0.015)
     assert np.isnan(consistent_variances(10, np.zeros(10, np.int64))[1])
+
+
+def test_consistency_band_is_the_chi_square_law_not_a_normal_one() -> None:
+    # a short run: the average of 3 NEES values is skewed, chi2(36) / 3
+    rng = np.random.default_rng(1)
+    nees = rng.chisquare(12, size=(200_000, 3)).mean(axis=1)
+    lo, hi = consistency_band(12.0, consistent_variances(3, np.zeros(3, np.int64))[0])
+    assert np.mean(nees < lo) == pytest.approx(0.025, abs=0.002)
+    assert np.mean(nees > hi) == pytest.approx(0.025, abs=0.002)
+    assert np.isnan(consistency_band(1.0, float("nan"))[0])

@@ -124,8 +124,8 @@ def _bands(res: dict) -> list[str]:
             if band[0] <= val <= band[1]:
                 inside.append(f"{f.upper()}-{k} {name}")
     return [
-        "95% bands of a consistent filter for these averages (normal approximation to their "
-        f"chi-square laws, steps taken as independent): {'; '.join(parts)}. "
+        "95% bands of a consistent filter for these averages (their chi-square laws, steps "
+        f"taken as independent): {'; '.join(parts)}. "
         f"Inside their band: {', '.join(inside) if inside else 'none'}.",
         "",
     ]

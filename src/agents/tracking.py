@@ -180,10 +180,18 @@ def consistent_variances(steps: int, dof: NDArray[np.int64], state_dim: int = 12
     return 2.0 * state_dim / max(steps, 1), nis
 
 
-def consistency_band(mean: float, var_of_mean: float, z: float = 1.96) -> tuple[float, float]:
-    """95% band ``mean +- z sd`` of an average (normal approximation to its chi-square law)."""
-    sd = math.sqrt(var_of_mean) if math.isfinite(var_of_mean) else math.nan
-    return mean - z * sd, mean + z * sd
+def consistency_band(mean: float, var_of_mean: float, level: float = 0.95) -> tuple[float, float]:
+    """Central ``level`` band of an average with this mean and variance, as a scaled
+    chi-square law ``mean * chi2(k) / k`` with ``k = 2 mean^2 / var`` degrees of freedom.
+
+    Exact for the average NEES of a consistent filter (``k = state_dim * steps``); for NIS/dof
+    with a varying number of cameras it matches the first two moments.
+    """
+    if not (math.isfinite(var_of_mean) and var_of_mean > 0 and mean > 0):
+        return math.nan, math.nan
+    k = 2.0 * mean * mean / var_of_mean
+    tail = 0.5 * (1.0 - level)
+    return float(mean * chi2.ppf(tail, k) / k), float(mean * chi2.ppf(1.0 - tail, k) / k)
 
 
 def aggregate_rms(scores: dict[str, float]) -> float:
