@@ -297,19 +297,22 @@ def test_kalman_roughening_keeps_the_gaussian_posterior_spread_under_a_sharp_lik
     """A likelihood far sharper than the cloud leaves one particle with all the weight: the
     posterior-covariance kernel then collapses the cloud, the Kalman kernel keeps the
     spread the closed-form filter has (times Silverman's bandwidth) in the unobserved
-    velocities."""
+    velocities, their correlation included."""
     sharp = LinearGaussianObservation(H[:2], np.array([1e-10, 1e-10]))
+    cov = PRIOR.cov.copy()
+    cov[2, 3] = cov[3, 2] = 0.07  # correlated velocities (r = 0.7)
+    prior = GaussianBelief(PRIOR.mean, cov)
     u, z, valid = np.zeros(2), np.array([0.4, -0.1]), np.ones(2, bool)
     m = 4000
     spread, clouds = {}, {}
     for cov_kind in ("posterior", "kalman"):
         pf = PF(PRED, sharp, n_particles=m, resample_below=1.0, roughen=1.0, roughen_cov=cov_kind)
         rng = np.random.default_rng(5)
-        belief, info = pf.step(pf.initial(PRIOR, rng), u, z, valid, rng)
+        belief, info = pf.step(pf.initial(prior, rng), u, z, valid, rng)
         assert info.ess < 2.0
         spread[cov_kind] = belief.particles[:, 2:].std(axis=0)
         clouds[cov_kind] = np.cov(belief.particles.T)
-    prior_cov = A @ PRIOR.cov @ A.T + np.diag(Q)
+    prior_cov = A @ prior.cov @ A.T + np.diag(Q)
     hs = H[:2]
     k = np.linalg.solve(hs @ prior_cov @ hs.T, hs @ prior_cov).T  # gain P H^T S^-1 (S symmetric)
     post = prior_cov - k @ hs @ prior_cov
