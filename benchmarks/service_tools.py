@@ -105,7 +105,8 @@ def factor_mb(models: Path, kind: str = "gp") -> float:
 
 
 def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
-    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query.
+    """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query, over
+    ``n`` queries after ``WARM_UP`` uncounted ones (as the service's round trips).
 
     With ``stream_mb`` the work reads that many MB once (then spins for the rest); the
     echo reports how long its work took, and that is what is subtracted.
@@ -121,7 +122,7 @@ def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
     time.sleep(0.3)
     out = []
     try:
-        for _ in range(n):
+        for _ in range(n + WARM_UP):
             t0 = time.perf_counter()
             reply = session.get("echo/x", payload=b"y" * 150).recv()
             out.append(time.perf_counter() - t0 - float(reply.ok.payload.to_bytes().decode()))
@@ -129,4 +130,4 @@ def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
         session.close()
         proc.stdin.close()
         proc.wait(timeout=20)
-    return float(np.median(np.array(out[5:]) * 1e3))
+    return float(np.median(np.array(out[WARM_UP:]) * 1e3))
