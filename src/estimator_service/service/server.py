@@ -25,7 +25,8 @@ import zenoh
 
 from estimator_service.factory import load_models, make_filter
 from estimator_service.service.protocol import PROTOCOL_VERSION, encode
-from estimator_service.service.session import Session, SessionSettings, WorkerPool
+from estimator_service.service.session import Session, SessionSettings
+from estimator_service.service.workers import WorkerPool
 
 __all__ = ["EstimatorService", "ServiceConfig", "main", "zenoh_config"]
 
