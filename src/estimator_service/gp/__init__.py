@@ -10,8 +10,9 @@ angles enter and leave on the circle. :func:`save_gp` / :func:`load_gp` persist 
 from estimator_service.gp.base import GPModel, GPPrediction, Progress, Scaler
 from estimator_service.gp.circular import CircularGP, fit_circular
 from estimator_service.gp.enhanced import EnhancedGP, fit_enhanced, numeric_jacobian
-from estimator_service.gp.exact import ExactGP, exact_nll, fit_exact
+from estimator_service.gp.exact import ExactGP, fit_exact
 from estimator_service.gp.hetero import HeteroscedasticGP, fit_hetero
+from estimator_service.gp.hyper import exact_nll
 from estimator_service.gp.io import FORMAT_VERSION, ModelFileError, load_gp, save_gp
 from estimator_service.gp.sparse import SparseGP, fit_sparse, sparse_nll
 

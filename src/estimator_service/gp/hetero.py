@@ -21,13 +21,8 @@ from estimator_service.gp.base import (
     check_query,
     check_training_data,
 )
-from estimator_service.gp.exact import (
-    ExactGP,
-    fit_exact,
-    learn_thetas,
-    random_subset,
-    unscale,
-)
+from estimator_service.gp.exact import ExactGP, fit_exact, unscale
+from estimator_service.gp.hyper import learn_thetas, random_subset
 
 __all__ = ["HeteroscedasticGP", "fit_hetero"]
 

@@ -23,7 +23,8 @@ from estimator_service.gp.base import (
     check_query,
     check_training_data,
 )
-from estimator_service.gp.exact import initial_thetas, optimize_theta, theta_bounds, unscale
+from estimator_service.gp.exact import unscale
+from estimator_service.gp.hyper import initial_thetas, optimize_theta, theta_bounds
 from estimator_service.gp.kernel import CrossKernel, split_theta, sq_dist
 from estimator_service.gp.linalg import chol_solve, robust_cholesky, single_threaded_blas, tri_solve
 
