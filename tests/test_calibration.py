@@ -9,15 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from agents.calibrate import calibrate_noise, calibrate_observation, calibration_rows, without_frames
 from agents.recorder import collect_flight
-from agents.training import (
-    TrainSettings,
-    calibrate_noise,
-    calibrate_observation,
-    calibration_rows,
-    train_models,
-    without_frames,
-)
+from agents.training import TrainSettings, train_models
 from estimator_service.factory import load_models
 from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.models.calibration import (

@@ -5,7 +5,7 @@ one-step errors of independent transitions. A filter chains them, and unmodelled
 that persist over many steps (on the simulated blimp: wind gusts with a 3 s correlation
 time) make every filter overconfident. One scalar per model kind, chosen on training
 flights so that the filter's average NEES matches the state dimension, corrects that
-(:func:`agents.training.calibrate_noise`); it is stored beside the models in
+(:func:`agents.calibrate.calibrate_noise`); it is stored beside the models in
 ``calibration.json`` and applied by :func:`estimator_service.factory.load_models`.
 
 Observation GPs are overconfident in another way: their variance is smallest on their own
@@ -13,7 +13,7 @@ training frames, and held-out states lie between them (paper-size GP, first held
 block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
 camera).
 A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
-particles (:func:`agents.training.calibrate_observation` measures it on a stretch of the
+particles (:func:`agents.calibrate.calibrate_observation` measures it on a stretch of the
 training flight kept out of the observation training set; one scale per output).
 """
 
