@@ -20,6 +20,9 @@ EXPECTED = {
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",
     },
     "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
+    "model_swap.py": {
+        "param_ang_velocity_deg_s", "gp_pred_param_obs_ang_velocity_deg_s", "gp_yaw_rate_deg_s",
+    },
     "bench_training.py": {
         "exact_nll_ms_default_threads", "exact_nll_ms_one_thread", "potri_speedup",
         "subset_fit_speedup", "subset_to_full_rms_ratio",
