@@ -202,3 +202,19 @@ def test_landmark_experiment_tracks_with_all_filters() -> None:
     res = run_landmark_experiment(n_test=1, steps=60, particles=100)
     assert set(res) == {"GP-UKF (alpha=1e-3)", "GP-UKF (alpha=1)", "GP-EKF", "GP-PF"}
     assert all(np.isfinite(v["position"]) and v["position"] < 2.0 for v in res.values())
+
+
+def test_persistence_finds_an_ar1_errors_mean_and_correlation() -> None:
+    from agents.reproduce import persistence
+
+    rng = np.random.default_rng(0)
+    e = np.zeros(20_000)
+    for k in range(1, e.size):  # AR(1), coefficient 0.9, around a mean of 1
+        e[k] = 0.9 * e[k - 1] + rng.standard_normal()
+    e += 1.0
+    mask = np.ones(e.size, bool)
+    mask[5000:5100] = False  # a gap: no pair spans it
+    rms, mean, lag1 = persistence(e, mask)
+    assert lag1 == pytest.approx(0.9, abs=0.02) and mean == pytest.approx(1.0, abs=0.3)
+    assert rms == pytest.approx(np.sqrt(np.mean(e[mask] ** 2)))
+    assert np.isnan(persistence(e, np.arange(e.size) % 2 == 0)[2])  # no consecutive rows

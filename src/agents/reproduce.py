@@ -163,12 +163,45 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
         res[f"{name}: yaw std elsewhere (deg)"] = float(sd[~m].mean())
         res[f"{name}: truth within 3 sigma"] = float(inside.mean())
         res[f"{name}: truth within 3 sigma in left turns"] = float(inside[m].mean()) if m.any() else math.nan
+        res |= _yaw_rate_figures(name, folder, test, r, m)
     axes[0].set_ylim(-lim, lim)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     save_figure(fig, path)
     return res
+
+
+def _yaw_rate_figures(name: str, folder: Path, test: Flight, r, left) -> dict[str, float]:
+    """Yaw rate in left turns: the GP-UKF's RMS error and RMS std, and the GP prediction
+    model's one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
+    yaw-rate change at the true states (deg/s). Errors that repeat from step to step build
+    up in a filter that adds each step's predictive variance as independent noise."""
+    if not left.any():
+        return {}
+    inp, change = prediction_data([test])
+    out = load_models(folder, "gp")[0].predict(inp[:, :12], inp[:, 12:])
+    one = left[: len(inp)]
+    rms = lambda a: float(np.degrees(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
+    err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), one)
+    return {
+        f"{name}: yaw-rate error in left turns (deg/s)": rms(r.error[left, 11]),
+        f"{name}: yaw-rate std in left turns (deg/s)": rms(np.sqrt(r.cov[left, 11, 11])),
+        f"{name}: one-step yaw-rate change error in left turns (deg/s)": err_rms,
+        f"{name}: one-step yaw-rate change mean error in left turns (deg/s)": err_mean,
+        f"{name}: one-step yaw-rate change error, lag-1 autocorrelation in left turns": lag1,
+        f"{name}: one-step yaw-rate change std in left turns (deg/s)": rms(np.sqrt(out.var[one, 11])),
+    }
+
+
+def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """RMS, mean and lag-1 autocorrelation of a series ``err (T,)`` over the rows in
+    ``mask (T,)``; the autocorrelation pairs consecutive rows that are both in ``mask``
+    (NaN with fewer than 3 such pairs)."""
+    pairs = np.flatnonzero(mask[:-1] & mask[1:])
+    lag1 = float(np.corrcoef(err[pairs], err[pairs + 1])[0, 1]) if pairs.size > 2 else math.nan
+    e = err[mask]
+    return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
 
 
 def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
