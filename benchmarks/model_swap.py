@@ -7,8 +7,10 @@ parametric prediction with the GP camera model. Prints, per pairing, the RMS of 
 orientation and angular-velocity axis (RMS over each fold's segments, averaged over the
 folds) and ends with one JSON line.
 
-Usage: ``python benchmarks/model_swap.py [--quick] [--results DIR] [--filter ukf]``
-(``--quick``: the committed quick run's first fold).
+Usage: ``python benchmarks/model_swap.py [--quick] [--results DIR] [--filter ukf]``.
+The models of a reproduce run are not committed (``.gitignore``): run
+``gpbf reproduce --out DIR`` first (about 25 minutes; models byte-identical for a seed).
+``--quick`` needs none: it trains tiny param and GP models on a 90-second flight.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +27,7 @@ import numpy as np
 from agents.recorder import collect_flight
 from agents.reproduce import split_folds
 from agents.tracking import segments, state_error, track_flight
+from agents.training import TrainSettings, train_models
 from estimator_service.factory import load_models, make_filter
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,21 +49,12 @@ def fold_errors(folder: Path, test, filt: str, pred_kind: str, obs_kind: str, se
     return np.concatenate([state_error(r.mean, r.truth) for r in runs])
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="the quick run's models, first fold only")
-    ap.add_argument("--results", type=Path, default=None, help="a gpbf reproduce output folder")
-    ap.add_argument("--filter", default="ukf", choices=("ukf", "ekf"), help="filter to track with")
-    args = ap.parse_args()
-    results = args.results or ROOT / "docs/results" / ("reproduce_quick" if args.quick else "reproduce_full")
-    s = json.loads((results / "results.json").read_text())["settings"]
-    flight = collect_flight(s["minutes"] * 60, seed=s["seed"])
-    folds = split_folds(flight, s["folds"])[: 1 if args.quick else None]
-    seg = round(s["track_seconds"] / flight.metadata["dt"])
+def swap_figures(folders: list[Path], tests: list, filt: str, seg: int) -> dict[str, float]:
+    """Per pairing, RMS of each angle and rate (deg, deg/s) and of the angular-velocity group,
+    over each fold's segments, averaged over the folds; one line printed per pairing."""
     figures: dict[str, float] = {}
     for name, (pk, ok) in PAIRINGS.items():
-        per_fold = [fold_errors(results / f"models_fold{i}", test, args.filter, pk, ok, seg)
-                    for i, (_, test) in enumerate(folds)]  # fmt: skip
+        per_fold = [fold_errors(f, t, filt, pk, ok, seg) for f, t in zip(folders, tests, strict=True)]
         rms = np.mean([np.sqrt(np.mean(e**2, axis=0)) for e in per_fold], axis=0)  # (12,)
         group = np.mean([math.sqrt(np.mean(e[:, 9:12] ** 2)) for e in per_fold])
         figures[f"{name}_ang_velocity_deg_s"] = round(math.degrees(group), 3)
@@ -68,6 +64,33 @@ def main() -> None:
         print(f"{name:20s} pred={pk:6s} obs={ok:6s} angular velocity {math.degrees(group):.2f} deg/s;",
               ", ".join(f"{a} {math.degrees(rms[3 + i]):.2f} deg / {math.degrees(rms[9 + i]):.2f} deg/s"
                         for i, a in enumerate(AXES)))  # fmt: skip
+    return figures
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="tiny models on a 90-second flight")
+    ap.add_argument("--results", type=Path, default=ROOT / "docs/results/reproduce_full",
+                    help="a gpbf reproduce output folder with its models_fold*/")  # fmt: skip
+    ap.add_argument("--filter", default="ukf", choices=("ukf", "ekf"), help="filter to track with")
+    args = ap.parse_args()
+    if args.quick:
+        train, test = split_folds(collect_flight(90.0, seed=0), 2)[0]
+        with tempfile.TemporaryDirectory() as tmp:
+            settings = TrainSettings(n_points=60, n_pseudo=8, restarts=1, max_iter=5, hetero_iterations=1)
+            train_models([train], tmp, kinds=("param", "gp"), settings=settings, seed=0)
+            figures = swap_figures([Path(tmp)], [test], args.filter, 80)
+    else:
+        if not (args.results / "results.json").exists():
+            sys.exit(f"{args.results} has no results.json: give a gpbf reproduce output folder")
+        s = json.loads((args.results / "results.json").read_text())["settings"]
+        folders = [args.results / f"models_fold{i}" for i in range(s["folds"])]
+        if missing := [f for f in folders if not (f / "parametric.npz").exists()]:
+            sys.exit(f"no models in {missing[0]}: run 'gpbf reproduce --seed {s['seed']} --out "
+                     f"{args.results}' first (models are not committed)")  # fmt: skip
+        flight = collect_flight(s["minutes"] * 60, seed=s["seed"])
+        tests = [test for _, test in split_folds(flight, s["folds"])]
+        figures = swap_figures(folders, tests, args.filter, round(s["track_seconds"] / flight.metadata["dt"]))
     print(json.dumps(figures))
 
 
