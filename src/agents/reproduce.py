@@ -22,7 +22,15 @@ from tqdm import tqdm
 
 from agents.landmark import run_landmark_experiment
 from agents.recorder import Flight, collect_flight
-from agents.tracking import aggregate_rms, group_rms, mean_sd, segments, state_error, track_flight
+from agents.tracking import (
+    TrackResult,
+    aggregate_rms,
+    group_rms,
+    mean_sd,
+    segments,
+    state_error,
+    track_flight,
+)
 from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 from estimator_service.gp.io import atomic_write_text
@@ -172,7 +180,9 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
     return res
 
 
-def _yaw_rate_figures(name: str, folder: Path, test: Flight, r, left) -> dict[str, float]:
+def _yaw_rate_figures(
+    name: str, folder: Path, test: Flight, r: TrackResult, left: np.ndarray
+) -> dict[str, float]:
     """Yaw rate in left turns: the GP-UKF's RMS error and RMS std, and the GP prediction
     model's one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
     yaw-rate change at the true states (deg/s). Errors that repeat from step to step build
