@@ -13,10 +13,9 @@ from gpbf_env.camera import (
     default_cameras,
     ellipse_from_points,
     euler_to_matrix,
-    fit_ellipse_image,
     outline_ellipses,
-    render_frame,
 )
+from gpbf_env.imaging import fit_ellipse_image, render_frame
 
 ROOM = (10.0, 6.0, 4.0)
 AXES = (0.85, 0.32, 0.32)

@@ -36,7 +36,8 @@ from agents.plots import save_figure
 from agents.recorder import collect_flight, save_flight
 from agents.tracking import GROUPS, group_rms, state_error
 from agents.training import TrainSettings, train_models
-from gpbf_env.camera import euler_to_matrix, fit_ellipse_image, outline_ellipses, render_frame
+from gpbf_env.camera import euler_to_matrix, outline_ellipses
+from gpbf_env.imaging import fit_ellipse_image, render_frame
 
 __all__ = ["fly", "main"]
 

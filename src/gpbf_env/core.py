@@ -16,10 +16,9 @@ from gpbf_env.camera import (
     Camera,
     default_cameras,
     euler_to_matrix,
-    fit_ellipse_image,
     outline_ellipses,
-    render_frame,
 )
+from gpbf_env.imaging import fit_ellipse_image, render_frame
 from gpbf_env.params import BlimpParams, randomize_params
 from gpbf_env.tasks import TASKS, RewardWeights
 

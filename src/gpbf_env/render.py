@@ -8,8 +8,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpbf_env.camera import euler_to_matrix, render_frame
+from gpbf_env.camera import euler_to_matrix
 from gpbf_env.core import WorldConfig
+from gpbf_env.imaging import render_frame
 
 __all__ = ["draw_ellipse", "render_scene"]
 
