@@ -36,18 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_filters as bf
-from service_tools import (
-    WARM_UP,
-    echo_floor,
-    factor_mb,
-    free_port,
-    lockstep,
-    phases,
-    start_service,
-    step_inputs,
-)
+from service_tools import WARM_UP, echo_floor, factor_mb, lockstep, phases, service_session, step_inputs
 
-from agents.bridge import EstimatorClient, open_session
+from agents.bridge import EstimatorClient
 from estimator_service.factory import build_filter, save_parametric
 from estimator_service.filters import GaussianBelief
 from estimator_service.gp import save_gp
@@ -136,22 +127,14 @@ def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> float:
 
 
 def capacity(models: Path, model: str, levels: list[int], seconds: float) -> tuple[int, dict[int, float]]:
-    port = free_port()
-    proc = start_service(models, port, model)
-    session = open_session([f"tcp/127.0.0.1:{port}"])
-    time.sleep(0.3)
     best, p99s = 0, {}
-    try:
+    with service_session(models, model) as session:
         for n in levels:
             p99s[n] = capacity_run(session, n, seconds, model)
             print(f"  {model:6s} GP-EKF, {n:4d} blimps at 4 Hz: p99 {p99s[n]:8.2f} ms")
             if p99s[n] >= 50.0:
                 break
             best = n
-    finally:
-        session.close()
-        proc.terminate()
-        proc.wait(timeout=20)
     return best, p99s
 
 
@@ -164,12 +147,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp:
         models = Path(tmp)
         write_models(models)
-        port = free_port()
-        proc = start_service(models, port, "gp")
-        session = open_session([f"tcp/127.0.0.1:{port}"])
-        time.sleep(0.3)
         res: dict[str, float] = {}
-        try:
+        with service_session(models, "gp") as session:
             for filt in ("ekf", "ukf"):
                 rtt, loc, served = round_trips(session, models, filt, n_rtt)
                 res[f"{filt}_service_step_p50_ms"] = np.median(served)
@@ -177,20 +156,22 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 res[f"{filt}_rtt_p50_ms"], res[f"{filt}_rtt_p99_ms"] = np.median(rtt), np.percentile(rtt, 99)
                 res[f"{filt}_inprocess_p50_ms"] = np.median(loc)
                 res[f"{filt}_overhead_p50_ms"] = np.median(rtt) - np.median(loc)
-                p50, p99, lp50 = np.median(rtt), np.percentile(rtt, 99), np.median(loc)
-                print(f"GP-{filt.upper()}: round trip p50 {p50:.3f} ms, p99 {p99:.3f} ms;")
-                print(f"  in-process p50 {lp50:.3f} ms; overhead {p50 - lp50:.3f} ms")
-                floor = echo_floor(float(np.median(served)), n_rtt)
+                print(f"GP-{filt.upper()}: round trip p50 {res[f'{filt}_rtt_p50_ms']:.3f} ms, "
+                      f"p99 {res[f'{filt}_rtt_p99_ms']:.3f} ms;")  # fmt: skip
+                print(f"  in-process p50 {res[f'{filt}_inprocess_p50_ms']:.3f} ms; "
+                      f"overhead {res[f'{filt}_overhead_p50_ms']:.3f} ms")  # fmt: skip
+                step_ms = float(res[f"{filt}_service_step_p50_ms"])
+                floor = echo_floor(step_ms, n_rtt)
                 res[f"{filt}_zenoh_floor_ms"] = floor
                 print(f"  bare zenoh query, same hand-off and work: {floor:.3f} ms over the work")
                 if filt == "ekf":
                     mb = factor_mb(models)
-                    cold = echo_floor(float(np.median(served)), n_rtt, mb)
+                    cold = echo_floor(step_ms, n_rtt, mb)
                     res["zenoh_floor_streaming_ms"] = cold
                     print(f"  ... with the work reading {mb:.0f} MB as the GP step does: {cold:.3f} ms")
                 print(
-                    f"  service-side step p50 {np.median(served):.3f} ms; "
-                    f"round trip minus it (zenoh, queue, encoding) p50 {np.median(rtt - served):.3f} ms"
+                    f"  service-side step p50 {step_ms:.3f} ms; round trip minus it (zenoh, queue, "
+                    f"encoding) p50 {res[f'{filt}_transport_p50_ms']:.3f} ms"
                 )
             # the same path with the small sparse models: how much of the overhead is the exact
             # GP's 68 MB of Cholesky factors evicting the transport's code and data from the caches
@@ -201,10 +182,6 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 f"sparse GP-EKF: round trip p50 {np.median(rtt):.3f} ms, in-process {np.median(loc):.3f} ms; "
                 f"overhead {res['sparse_overhead_p50_ms']:.3f} ms"
             )
-        finally:
-            session.close()
-            proc.terminate()
-            proc.wait(timeout=20)
         legs = phases(models, n_rtt)
         print("GP-EKF round trip by leg (p50 ms): " + ", ".join(f"{k} {v:.3f}" for k, v in legs.items()))
         best_sparse, _ = capacity(models, "sparse", levels, seconds)

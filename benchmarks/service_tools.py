@@ -4,48 +4,37 @@ the bare zenoh floors it is compared with."""
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from agents.bridge import EstimatorClient, open_session
+from agents.bridge import EstimatorClient, free_port, open_session, spawn_service
 
 WARM_UP = 20  # round trips and steps run before measuring (the service's first ones are slow)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_service(models: Path, port: int, model: str, trace: Path | None = None) -> subprocess.Popen:
-    """``gpbf serve`` in another process; with ``trace``, the timestamped one (service_trace.py)."""
-    launcher = (
-        ["-m", "estimator_service"]
-        if trace is None
-        else [str(Path(__file__).with_name("service_trace.py")), str(trace)]
-    )
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            *launcher,
-            "--models",
-            str(models),
-            "--model",
-            model,
-            "--listen",
-            f"tcp/127.0.0.1:{port}",
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert "ready" in proc.stdout.readline()
-    return proc
+@contextmanager
+def service_session(models: Path, model: str, trace: Path | None = None) -> Iterator[Any]:
+    """A zenoh session connected to ``gpbf serve`` (in another process, serving ``model``;
+    with ``trace``, the timestamped one of service_trace.py); both closed on exit."""
+    tracer = (sys.executable, str(Path(__file__).with_name("service_trace.py")), str(trace))
+    kw = {} if trace is None else {"command": tracer}
+    port = free_port()
+    proc, _ = spawn_service(models, port, "--model", model, merge_stderr=False, **kw)
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    try:
+        time.sleep(0.3)
+        yield session
+    finally:
+        session.close()
+        proc.terminate()
+        proc.wait(timeout=20)
 
 
 def step_inputs(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -72,18 +61,10 @@ def lockstep(
 def phases(models: Path, n: int) -> dict[str, float]:
     """p50 (ms) of each leg of a GP-EKF round trip, from a timestamped service (one clock)."""
     trace = models / "trace.json"
-    port = free_port()
-    proc = start_service(models, port, "gp", trace)
-    session = open_session([f"tcp/127.0.0.1:{port}"])
-    try:
-        time.sleep(0.3)
+    with service_session(models, "gp", trace) as session:
         rng = np.random.default_rng(3)
         mean = rng.normal(size=12) * 0.5
         times = lockstep(session, "trace", "ekf", "gp", mean, step_inputs(rng, n + WARM_UP))[0]
-    finally:
-        session.close()
-        proc.terminate()
-        proc.wait(timeout=20)
     send, recv = times[WARM_UP:].T
     cb, worker, start, end, replied = np.array(json.loads(trace.read_text())[WARM_UP:]).T
     legs = {

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import time
@@ -14,7 +13,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-from agents.bridge import open_session
+from agents.bridge import free_port, open_session
 from agents.recorder import collect_flight
 from agents.rl import AgentSpec, evaluate_agent, load_agent, make_vec, train_agent
 from agents.training import TrainSettings, train_models
@@ -105,9 +104,7 @@ def test_sb3_vector_env_gives_each_sub_env_its_own_filter(models: str) -> None:
 
 
 def test_service_back_end_gives_the_same_observations(models: str) -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     proc = subprocess.Popen(
         [sys.executable, "-m", "estimator_service", "--models", models, "--listen", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.PIPE,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import socket
 import subprocess
 import sys
 import threading
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from agents.bridge import EstimatorClient, ServiceError, open_session, services
+from agents.bridge import EstimatorClient, ServiceError, free_port, open_session, services
 from agents.recorder import collect_flight
 from agents.training import TrainSettings, train_models
 from estimator_service.factory import build_filter
@@ -24,12 +23,6 @@ from estimator_service.service.protocol import PROTOCOL_VERSION, decode_belief
 
 V = PROTOCOL_VERSION
 STD = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Service:

@@ -4,12 +4,17 @@
 ``step`` in lock-step (a zenoh query per env step: control + camera frames in, belief out)
 or stream (``stream=True``; ``publish_control`` / ``publish_camera``; beliefs arrive on a
 subscriber and are read with ``next_belief``). :func:`env_frames` turns a ``gpbf_env``
-observation into frames.
+observation into frames. :func:`spawn_service` starts the service as another process on a
+local port (:func:`free_port`), as the demo, the tests and the benchmarks do.
 """
 
 from __future__ import annotations
 
+import os
 import queue
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -21,7 +26,15 @@ import zenoh
 from estimator_service.service.protocol import PROTOCOL_VERSION, decode, decode_belief, encode
 from estimator_service.service.server import LIVELINESS_PREFIX, zenoh_config
 
-__all__ = ["EstimatorClient", "ServiceError", "env_frames", "open_session", "services"]
+__all__ = [
+    "EstimatorClient",
+    "ServiceError",
+    "env_frames",
+    "free_port",
+    "open_session",
+    "services",
+    "spawn_service",
+]
 
 
 class ServiceError(RuntimeError):
@@ -31,6 +44,36 @@ class ServiceError(RuntimeError):
 def open_session(connect: Sequence[str] = ("tcp/127.0.0.1:7447",), config_file=None) -> zenoh.Session:
     """A zenoh peer that connects to the service's endpoint(s); no listening, no scouting."""
     return zenoh.open(zenoh_config(listen=(), connect=tuple(connect), file=config_file))
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free now (for a service started next)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def spawn_service(
+    models: str | os.PathLike[str], port: int, *options: str,
+    command: Sequence[str] = (sys.executable, "-m", "estimator_service"), merge_stderr: bool = True,
+) -> tuple[subprocess.Popen, str]:  # fmt: skip
+    """Start ``gpbf serve --models MODELS OPTIONS --listen tcp/127.0.0.1:PORT`` as another
+    process (``command`` replaces ``python -m estimator_service``, e.g. by an instrumented
+    launcher); return it and its ready line once it has printed that line.
+
+    ``merge_stderr`` sends the service's stderr to the same pipe as its stdout. Raises
+    :class:`RuntimeError` with what the service printed when it exits instead.
+    """
+    proc = subprocess.Popen(
+        [*command, "--models", os.fspath(models), *options, "--listen", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT if merge_stderr else None, text=True,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    if "ready" not in line:
+        proc.kill()
+        raise RuntimeError(f"estimator service did not start: {line}{proc.stdout.read()}")
+    return proc, line.strip()
 
 
 def services(session: zenoh.Session, timeout: float = 2.0) -> list[str]:

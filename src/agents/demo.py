@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import argparse
 import signal
-import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -30,7 +27,7 @@ from matplotlib.patches import Ellipse
 from tqdm import tqdm
 
 import gpbf_env
-from agents.bridge import EstimatorClient, env_frames, open_session, services
+from agents.bridge import EstimatorClient, env_frames, free_port, open_session, services, spawn_service
 from agents.pilots import WaypointPilot, make_pilot
 from agents.plots import save_figure
 from agents.recorder import collect_flight, save_flight
@@ -133,37 +130,6 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     save_figure(fig, path)
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def _start_service(models: Path, port: int) -> subprocess.Popen:
-    """``gpbf serve`` as a separate process; returns once it reports ready."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "agents.cli",
-        "serve",
-        "--models",
-        str(models),
-        "--filter",
-        "ukf",
-        "--model",
-        "egp",
-        "--listen",
-        f"tcp/127.0.0.1:{port}",
-    ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    line = proc.stdout.readline()
-    if "ready" not in line:
-        proc.kill()
-        raise RuntimeError(f"estimator service did not start: {line}{proc.stdout.read()}")
-    print(line.strip())
-    return proc
-
-
 def fly_through_service(
     port: int, seconds: float, seed: int, kinds: tuple[str, ...]
 ) -> dict[str, np.ndarray]:
@@ -251,8 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         [flight], models, kinds=("param", "egp"), settings=settings, seed=args.seed, on_progress=progress
     )
     # 3. the estimator as a separate process, fed through the bridge
-    port = _free_port()
-    proc = _start_service(models, port)
+    port = free_port()
+    proc, ready = spawn_service(models, port, "--filter", "ukf", "--model", "egp")
+    print(ready)
     kinds = ("egp", "param")
     try:
         fl = fly_through_service(port, args.fly_seconds, args.seed + 1, kinds)
