@@ -40,11 +40,8 @@ PAIRINGS = {  # name: (prediction kind, observation kind)
 AXES = ("roll", "pitch", "yaw")
 
 
-def fold_errors(folder: Path, test, filt: str, pred_kind: str, obs_kind: str, seg: int) -> np.ndarray:
-    """State errors ``(T, 12)`` of one pairing over the held-out block's segments."""
-    pred = load_models(folder, pred_kind)[0]
-    obs = load_models(folder, obs_kind)[1]
-    f = make_filter(filt, pred, obs)
+def fold_errors(f, test, seg: int) -> np.ndarray:
+    """State errors ``(T, 12)`` of filter ``f`` over the held-out block's segments."""
     runs = [track_flight(f, test, rows=r, rng=np.random.default_rng(0)) for r in segments(len(test), seg)]
     return np.concatenate([state_error(r.mean, r.truth) for r in runs])
 
@@ -52,9 +49,14 @@ def fold_errors(folder: Path, test, filt: str, pred_kind: str, obs_kind: str, se
 def swap_figures(folders: list[Path], tests: list, filt: str, seg: int) -> dict[str, float]:
     """Per pairing, RMS of each angle and rate (deg, deg/s) and of the angular-velocity group,
     over each fold's segments, averaged over the folds; one line printed per pairing."""
+    errors: dict[str, list[np.ndarray]] = {name: [] for name in PAIRINGS}
+    for folder, test in zip(folders, tests, strict=True):
+        models = {k: load_models(folder, k) for k in ("param", "gp")}  # (prediction, observation)
+        for name, (pk, ok) in PAIRINGS.items():
+            errors[name].append(fold_errors(make_filter(filt, models[pk][0], models[ok][1]), test, seg))
     figures: dict[str, float] = {}
-    for name, (pk, ok) in PAIRINGS.items():
-        per_fold = [fold_errors(f, t, filt, pk, ok, seg) for f, t in zip(folders, tests, strict=True)]
+    for name, per_fold in errors.items():
+        pk, ok = PAIRINGS[name]
         rms = np.mean([np.sqrt(np.mean(e**2, axis=0)) for e in per_fold], axis=0)  # (12,)
         group = np.mean([math.sqrt(np.mean(e[:, 9:12] ** 2)) for e in per_fold])
         figures[f"{name}_ang_velocity_deg_s"] = round(math.degrees(group), 3)
