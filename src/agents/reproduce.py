@@ -35,6 +35,7 @@ from agents.training import TrainSettings, prediction_data, train_models
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 from estimator_service.gp.io import atomic_write_text
 from estimator_service.gp.linalg import single_threaded_blas
+from estimator_service.models.base import PredictionModel
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 
 __all__ = ["ReproduceSettings", "reproduce", "split_folds"]
@@ -156,7 +157,8 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
     for ax, (name, folder) in zip(
         axes, (("full data", folder_full), ("no left turns", reduced)), strict=True
     ):
-        r = track_flight(build_filter("ukf", "gp", folder), test)
+        ukf = build_filter("ukf", "gp", folder)
+        r = track_flight(ukf, test)
         t = np.arange(len(r.mean)) * 0.25
         sd = np.degrees(np.sqrt(r.cov[:, 5, 5]))
         err = np.degrees(r.error[:, 5])
@@ -171,7 +173,7 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
         res[f"{name}: yaw std elsewhere (deg)"] = float(sd[~m].mean())
         res[f"{name}: truth within 3 sigma"] = float(inside.mean())
         res[f"{name}: truth within 3 sigma in left turns"] = float(inside[m].mean()) if m.any() else math.nan
-        res |= _yaw_rate_figures(name, folder, test, r, m)
+        res |= _yaw_rate_figures(name, ukf.prediction, test, r, m)
     axes[0].set_ylim(-lim, lim)
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("time (s)")
@@ -181,16 +183,16 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
 
 
 def _yaw_rate_figures(
-    name: str, folder: Path, test: Flight, r: TrackResult, left: np.ndarray
+    name: str, pred: PredictionModel, test: Flight, r: TrackResult, left: np.ndarray
 ) -> dict[str, float]:
     """Yaw rate in left turns: the GP-UKF's RMS error and RMS std, and the GP prediction
-    model's one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
+    model ``pred``'s one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
     yaw-rate change at the true states (deg/s). Errors that repeat from step to step build
     up in a filter that adds each step's predictive variance as independent noise."""
     if not left.any():
         return {}
     inp, change = prediction_data([test])
-    out = load_models(folder, "gp")[0].predict(inp[:, :12], inp[:, 12:])
+    out = pred.predict(inp[:, :12], inp[:, 12:])
     one = left[: len(inp)]
     rms = lambda a: float(np.degrees(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
     err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), one)
