@@ -13,9 +13,9 @@ import json
 import tempfile
 import time
 
-from agents.recorder import collect_flight
 from agents.rl import AgentSpec, make_vec
-from agents.training import TrainSettings, train_models
+from agents.sim import collect_flight
+from estimator_service.training import TrainSettings, train_models
 
 
 def throughput(spec: AgentSpec, steps: int) -> float:

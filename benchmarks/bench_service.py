@@ -38,13 +38,15 @@ sys.path.insert(0, str(Path(__file__).parent))
 import bench_filters as bf
 from service_tools import WARM_UP, echo_floor, factor_mb, lockstep, phases, service_session, step_inputs
 
-from agents.bridge import EstimatorClient
-from estimator_service.factory import build_filter, save_parametric
+from estimator_service.blimp import blimp_system, save_parametric
+from estimator_service.factory import build_filter
 from estimator_service.filters import GaussianBelief
 from estimator_service.gp import save_gp
 from estimator_service.models.blimp import DEFAULT_PARAMS, BlimpODE
 from estimator_service.models.camera import CameraModel, PinholeCalibration
+from estimator_service.service.client import EstimatorClient
 from estimator_service.service.protocol import PROTOCOL_VERSION, encode
+from estimator_service.store import seal
 
 
 def write_models(folder: Path) -> None:
@@ -60,6 +62,7 @@ def write_models(folder: Path) -> None:
         CameraModel(cams, np.array([0.85, 0.32]), np.ones(10)),
         folder / "parametric.npz",
     )
+    seal(folder, blimp_system(2))
 
 
 def round_trips(

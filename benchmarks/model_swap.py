@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.recorder import collect_flight
-from agents.reproduce import split_folds
-from agents.tracking import segments, state_error, track_flight
-from agents.training import TrainSettings, train_models
+from agents.experiments.reproduce import split_folds
+from agents.sim import collect_flight
 from estimator_service.factory import load_models, make_filter
+from estimator_service.tracking import segments, state_error, track_flight
+from estimator_service.training import TrainSettings, train_models
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIRINGS = {  # name: (prediction kind, observation kind)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.bridge import EstimatorClient, free_port, open_session, spawn_service
+from estimator_service.service.client import EstimatorClient, free_port, open_session, spawn_service
 
 WARM_UP = 20  # round trips and steps run before measuring (the service's first ones are slow)
 

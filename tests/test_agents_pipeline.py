@@ -11,15 +11,16 @@ import pytest
 
 from agents.cli import main as gpbf
 from agents.pilots import make_pilot
-from agents.recorder import collect_flight, load_flight, save_flight
-from agents.training import TrainSettings, train_models
+from agents.sim import collect_flight
 from estimator_service.factory import load_models
+from estimator_service.flight import load_flight, save_flight
 from estimator_service.gp import CircularGP, EnhancedGP
 from estimator_service.models.calibration import (
     NoiseScaledObservation,
     NoiseScaledPrediction,
     read_noise_scales,
 )
+from estimator_service.training import TrainSettings, train_models
 
 
 @pytest.fixture(scope="module")
@@ -46,10 +47,10 @@ def test_scripted_pilot_flies_five_minutes_without_crashing_and_uses_full_fan_ra
 def test_collect_is_seeded_and_round_trips(flight, tmp_path: Path) -> None:
     again = collect_flight(90, seed=3)
     np.testing.assert_array_equal(flight.state, again.state)
-    np.testing.assert_array_equal(flight.ellipses, again.ellipses)
+    np.testing.assert_array_equal(flight.z, again.z)
     path = save_flight(flight, tmp_path / "f.npz")
     back = load_flight(path)
-    for name in ("t", "state", "control", "ellipses", "valid", "episode"):
+    for name in ("t", "state", "control", "z", "valid", "episode"):
         np.testing.assert_array_equal(getattr(back, name), getattr(flight, name))
     assert back.metadata["pilot"] == "scripted" and len(back.metadata["cameras"]) == 2
     assert not list(tmp_path.glob("*.tmp"))
@@ -58,9 +59,7 @@ def test_collect_is_seeded_and_round_trips(flight, tmp_path: Path) -> None:
 def test_transitions_never_cross_episodes(flight) -> None:
     ep = flight.episode.copy()
     ep[100:] += 1  # pretend a crash after row 99
-    f = type(flight)(
-        flight.t, flight.state, flight.control, flight.ellipses, flight.valid, ep, flight.metadata
-    )
+    f = type(flight)(flight.t, flight.state, flight.control, flight.z, flight.valid, ep, flight.metadata)
     rows = f.transition_rows()
     assert 99 not in rows and 98 in rows and 100 in rows
     _, _, xn = f.transitions()
@@ -165,7 +164,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
 
 
 def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
-    from agents.reproduce import ReproduceSettings, reproduce, split_folds
+    from agents.experiments.reproduce import ReproduceSettings, reproduce, split_folds
 
     s = ReproduceSettings(
         minutes=1.5,
@@ -197,7 +196,7 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
 
 
 def test_landmark_experiment_tracks_with_all_filters() -> None:
-    from agents.landmark import run_landmark_experiment
+    from agents.experiments.landmark import run_landmark_experiment
 
     res = run_landmark_experiment(n_test=1, steps=60, particles=100)
     assert set(res) == {"GP-UKF (alpha=1e-3)", "GP-UKF (alpha=1)", "GP-EKF", "GP-PF"}
@@ -205,7 +204,7 @@ def test_landmark_experiment_tracks_with_all_filters() -> None:
 
 
 def test_persistence_finds_an_ar1_errors_mean_and_correlation() -> None:
-    from agents.reproduce import persistence
+    from agents.experiments.reproduce import persistence
 
     rng = np.random.default_rng(0)
     e = np.zeros(20_000)

@@ -9,9 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.calibrate import calibrate_noise, calibrate_observation, calibration_rows, without_frames
-from agents.recorder import collect_flight
-from agents.training import TrainSettings, train_models
+from agents.sim import collect_flight
+from estimator_service.calibrate import (
+    calibrate_noise,
+    calibrate_observation,
+    calibration_rows,
+    without_frames,
+)
 from estimator_service.factory import load_models
 from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.models.calibration import (
@@ -22,6 +26,7 @@ from estimator_service.models.calibration import (
     read_observation_scales,
     write_noise_scales,
 )
+from estimator_service.training import TrainSettings, train_models
 
 
 def test_scaled_model_scales_only_the_variance() -> None:
@@ -92,7 +97,7 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
     for j in range(10):  # independently: camera j // 5, ellipse field j % 5
         v = fl.valid[:, j // 5]
         out = cam.observe(fl.state[v])
-        r = fl.ellipses[v, j // 5, j % 5] - out.mean[:, j]
+        r = fl.z[v, j] - out.mean[:, j]
         if j % 5 == 4:
             r = (r + np.pi / 2) % np.pi - np.pi / 2
         assert chosen[j] == pytest.approx(np.mean(r * r / out.var[:, j]), rel=1e-9)

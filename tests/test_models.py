@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from estimator_service.blimp import blimp_system, load_parametric, save_parametric
 from estimator_service.factory import (
     FILTER_KINDS,
     MODEL_KINDS,
     build_filter,
-    load_parametric,
-    save_parametric,
 )
 from estimator_service.filters import PF, GaussianBelief
 from estimator_service.gp import fit_enhanced, fit_exact, fit_hetero, fit_sparse, save_gp
 from estimator_service.models.blimp import DEFAULT_PARAMS, BlimpODE, fit_blimp_ode, integrate
 from estimator_service.models.camera import CameraModel, PinholeCalibration, fit_camera_model
+from estimator_service.store import seal
 
 
 def look_at(pos, target) -> PinholeCalibration:
@@ -110,6 +110,7 @@ def model_dir(flight, tmp_path_factory) -> Path:
     pmean = lambda q: ode.change(q[:, :12], q[:, 12:])  # noqa: E731
     save_gp(fit_enhanced(xin, dx, pmean, fit_exact, **quick), folder / "prediction_egp.npz")
     save_gp(fit_enhanced(x[sel], z, cam.mean, fit_exact, **quick), folder / "observation_egp.npz")
+    seal(folder, blimp_system(2))
     return folder
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from agents.report import _aggregate_gain, _checks, _filter_checks, improvement
-from agents.report_why import WHY
+from agents.experiments.report import _aggregate_gain, _checks, _filter_checks, improvement
+from agents.experiments.report_why import WHY
 
 
 def _row(p: float, xi: float, v: float, w: float, step: float = 1.0) -> dict:

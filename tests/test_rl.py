@@ -13,13 +13,13 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-from agents.bridge import free_port, open_session
-from agents.recorder import collect_flight
 from agents.rl import AgentSpec, evaluate_agent, load_agent, make_vec, train_agent
-from agents.training import TrainSettings, train_models
-from agents.wrappers import INIT_STD, VARIANTS, make_belief_env
+from agents.rl.wrappers import INIT_STD, VARIANTS, make_belief_env
+from agents.sim import collect_flight
 from estimator_service.factory import build_filter
 from estimator_service.filters import GaussianBelief
+from estimator_service.service.client import free_port, open_session
+from estimator_service.training import TrainSettings, train_models
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +92,11 @@ def test_saved_agent_reloads_and_acts_deterministically(models: str, tmp_path: P
     first = evaluate_agent(path, episodes=1)
     assert first == evaluate_agent(path, episodes=1)
     assert np.isfinite(first["belief_position_rms_mm"])
+    moved = tmp_path / "elsewhere"  # the spec's model folder resolves against the agent's folder
+    moved.mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(moved)
+        assert load_agent(Path("..") / path.name)[1] == spec
 
 
 def test_sb3_vector_env_gives_each_sub_env_its_own_filter(models: str) -> None:
@@ -138,8 +143,8 @@ def test_service_back_end_gives_the_same_observations(models: str) -> None:
 
 def test_collect_records_an_agents_flight_in_the_training_format(models: str, tmp_path: Path) -> None:
     from agents.cli import main as gpbf
-    from agents.recorder import load_flight
-    from agents.training import prediction_data
+    from estimator_service.flight import load_flight
+    from estimator_service.training import prediction_data
 
     path = train_agent(
         AgentSpec(algo="ppo", variant="belief", models=models),

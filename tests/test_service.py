@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from agents.bridge import EstimatorClient, ServiceError, free_port, open_session, services
-from agents.recorder import collect_flight
-from agents.training import TrainSettings, train_models
+from agents.sim import collect_flight
 from estimator_service.factory import build_filter
-from estimator_service.filters import PF, GaussianBelief
+from estimator_service.filters import GaussianBelief
+from estimator_service.service.client import EstimatorClient, ServiceError, free_port, open_session, services
 from estimator_service.service.protocol import PROTOCOL_VERSION, decode_belief
+from estimator_service.training import TrainSettings, train_models
 
 V = PROTOCOL_VERSION
 STD = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
@@ -89,23 +89,19 @@ def client(service):
 
 
 def frames_at(flight, k: int) -> list:
-    return [[int(j), flight.ellipses[k, j].tolist()] for j in np.flatnonzero(flight.valid[k])]
+    return [[int(j), flight.z[k].reshape(-1, 5)[j].tolist()] for j in np.flatnonzero(flight.valid[k])]
 
 
 def in_process(models: Path, flight, steps: int, filter_kind: str = "ekf", seed: int = 0):
     filt = build_filter(filter_kind, "gp", models, **({"n_particles": 300} if filter_kind == "pf" else {}))
     rng = np.random.default_rng(seed)
     b0 = GaussianBelief(flight.state[0], np.diag(STD * STD))
-    belief = filt.initial(b0, rng) if isinstance(filt, PF) else b0
+    belief = filt.initial(b0, rng)
+    valid = flight.expand_valid()
     out = []
     for k in range(steps):
-        z, valid = flight.ellipses[k + 1].reshape(-1), np.repeat(flight.valid[k + 1], 5)
-        if isinstance(filt, PF):
-            belief, _ = filt.step(belief, flight.control[k], z, valid, rng)
-            out.append(filt.gaussian(belief).mean)
-        else:
-            belief, _ = filt.step(belief, flight.control[k], z, valid)
-            out.append(belief.mean)
+        belief, _ = filt.step(belief, flight.control[k], flight.z[k + 1], valid[k + 1], rng)
+        out.append(filt.gaussian(belief).mean)
     return np.array(out)
 
 
@@ -168,7 +164,7 @@ def test_streaming_delivers_one_belief_per_frame_in_order(client, flight) -> Non
     for k in range(40):
         c.publish_control(flight.control[k], flight.t[k])
         for j in np.flatnonzero(flight.valid[k + 1]):
-            c.publish_camera(int(j), flight.ellipses[k + 1, j], flight.t[k + 1])
+            c.publish_camera(int(j), flight.z[k + 1].reshape(-1, 5)[j], flight.t[k + 1])
             sent.append(flight.t[k + 1])
     got = [c.next_belief(timeout=10) for _ in sent]
     assert [g["t"] for g in got] == sent

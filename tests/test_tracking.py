@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.tracking import consistency_band, consistent_variances
+from estimator_service.tracking import consistency_band, consistent_variances
 
 
 def test_consistency_bands_match_simulated_consistent_filters() -> None:

@@ -1,0 +1,187 @@
+"""``gpbf``: fly, record, train and track from the command line.
+
+Subcommands
+-----------
+collect   fly a pilot for N minutes in the simulator and record the flight (.npz)
+train     fit parametric, GP, EGP, heteroscedastic and sparse models from flights
+track     run a filter with a model kind over a recorded flight; RMS, log-likelihood, plot
+serve     run the estimator as a zenoh network service (same as python -m estimator_service)
+train-agent   train a PPO or SAC agent on a chosen observation variant (state, belief, ...)
+eval-agent    run a saved agent: return, task success, belief tracking error
+reproduce     the paper's experiments (Tables 5-10, Fig. 4, consistency) with a markdown report
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from estimator_service.cli import add_train_track, run
+from estimator_service.cli_args import (
+    Parser,
+    add_filter_options,
+    add_quiet,
+    checked_float,
+    checked_int,
+    package_version,
+    seed,
+)
+from estimator_service.progress import ProgressBar
+
+__all__ = ["main"]
+
+
+def _collect(args: argparse.Namespace) -> int:
+    from agents.sim import collect_flight
+    from estimator_service.flight import save_flight
+
+    policy = None
+    if args.agent is not None:
+        from agents.rl import AgentPolicy
+
+        policy = AgentPolicy(args.agent)
+    with ProgressBar(f"collect ({args.pilot})", enabled=not args.quiet) as bar:
+        flight = collect_flight(
+            args.minutes * 60, policy=policy, pilot=args.pilot, seed=args.seed, env_id=args.env,
+            progress=lambda k, total: bar.update_to(k, total),
+        )  # fmt: skip
+    path = save_flight(flight, args.out)
+    frames = flight.valid.sum(axis=0).tolist()
+    episodes = flight.episode.max() + 1
+    print(f"wrote {path}: {len(flight)} rows, {episodes} episode(s), frames per camera {frames}")
+    return 0
+
+
+def _train_agent(args: argparse.Namespace) -> int:
+    from agents.rl import AgentSpec, evaluate_agent, train_agent
+
+    spec = AgentSpec(
+        args.algo,
+        args.obs,
+        args.task,
+        args.filter,
+        args.model,
+        str(args.models) if args.models else None,
+        args.seed,
+    )
+    path = train_agent(
+        spec,
+        args.timesteps,
+        args.out,
+        n_envs=args.n_envs,
+        eval_freq=args.eval_freq,
+        progress_bar=not args.quiet,
+    )
+    print(f"wrote {path} and {args.out / 'learning_curve.png'}")
+    print(json.dumps({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
+    return 0
+
+
+def _eval_agent(args: argparse.Namespace) -> int:
+    from agents.rl import evaluate_agent
+
+    with ProgressBar("evaluate", args.episodes, unit="episode", enabled=not args.quiet) as bar:
+        result = evaluate_agent(
+            args.agent, episodes=args.episodes, seed=args.seed, on_episode=bar.update_to, models=args.models
+        )
+    print(json.dumps(result))
+    return 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from agents.experiments.reproduce import ReproduceSettings, reproduce
+
+    s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
+    s = replace(s, seed=args.seed)
+    reproduce(args.out, s, progress=not args.quiet)
+    print(f"wrote {args.out / 'report.md'}")
+    return 0
+
+
+ENV_IDS = ("gpbf_env/Blimp-v0", "gpbf_env/BlimpWaypoint-v0")
+
+
+def build_parser() -> Parser:
+    p = Parser(prog="gpbf", description=__doc__)
+    p.add_argument("--version", action="version", version=f"gpbf {package_version()}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
+    sub.add_parser("serve", help="run the estimator service (see 'gpbf serve --help')", add_help=False)
+
+    c = sub.add_parser("collect", help="fly a pilot in the simulator and record a flight")
+    c.add_argument(
+        "--minutes", type=checked_float(0.1, 10_000), default=5.0, help="simulated flight time (min)"
+    )
+    c.add_argument(
+        "--pilot", choices=("scripted", "random"), default="scripted",
+        help="scripted: manoeuvres like the paper's human pilot; random: random excitation",
+    )  # fmt: skip
+    c.add_argument("--seed", type=seed, default=0, help="seed of the env and the pilot")
+    c.add_argument("--env", choices=ENV_IDS, default=ENV_IDS[0], help="Gymnasium env id")
+    c.add_argument("--out", type=Path, default=Path("out/flights/flight.npz"), help="output .npz file")
+    c.add_argument(
+        "--agent", type=Path, default=None, help="fly a trained agent (model.zip) instead of the pilot"
+    )
+    add_quiet(c)
+    c.set_defaults(func=_collect)
+
+    add_train_track(sub)
+
+    a = sub.add_parser("train-agent", help="train an SB3 agent on beliefs")
+    a.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
+    a.add_argument(
+        "--obs", choices=("state", "belief", "belief-param", "ellipses"), default="belief",
+        help="observation: true state, GP belief, parametric belief, or raw ellipses",
+    )  # fmt: skip
+    a.add_argument("--task", choices=("hover", "waypoint"), default="hover", help="flight task")
+    add_filter_options(a)
+    a.add_argument(
+        "--timesteps", type=checked_int(1, 10**9), default=50_000, help="training environment steps"
+    )
+    a.add_argument(
+        "--n-envs", type=checked_int(1, 256), default=1, help="parallel envs, each with its own filter"
+    )
+    a.add_argument("--eval-freq", type=checked_int(1, 10**9), default=5000, help="steps between evaluations")
+    a.add_argument(
+        "--eval-episodes", type=checked_int(1, 10_000), default=5, help="episodes of the final evaluation"
+    )
+    a.add_argument("--seed", type=seed, default=0, help="seed of the agent and the envs")
+    a.add_argument("--out", type=Path, default=Path("out/agent"), help="output folder")
+    add_quiet(a)
+    a.set_defaults(func=_train_agent)
+
+    e = sub.add_parser("eval-agent", help="evaluate a saved agent")
+    e.add_argument("agent", type=Path, help="model.zip (with agent.json beside it)")
+    e.add_argument("--episodes", type=checked_int(1, 100_000), default=10, help="evaluation episodes")
+    e.add_argument("--seed", type=seed, default=1000, help="seed of the first episode")
+    e.add_argument(
+        "--models", type=Path, default=None, help="model folder (default: the one the agent names)"
+    )
+    add_quiet(e)
+    e.set_defaults(func=_eval_agent)
+
+    r = sub.add_parser("reproduce", help="run the paper's experiments and write a report")
+    r.add_argument(
+        "--out", type=Path, default=Path("out/reproduce"), help="output folder (report.md, figures)"
+    )
+    r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of under an hour")
+    r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
+    add_quiet(r)
+    r.set_defaults(func=_reproduce)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["serve"]:  # the service has its own parser and lifecycle
+        from estimator_service.service.server import main as serve
+
+        return serve(argv[1:])
+    return run(build_parser().parse_args(argv), "gpbf")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,278 @@
+"""``gpbf reproduce``: the paper's experiments (Sect. 6) on simulated flights.
+
+Tables 5/6 (one-step prediction and observation errors), Tables 7-9 (tracking with
+UKF/EKF/PF x Param/GP/EGP/hetGP/sparse: RMS improvement over the parametric filter,
+per state group and averaged over the groups as Table 7 does, mean log-likelihood, time
+per step), Fig. 4 (no training data with the tail pushing left),
+Table 10 (the synthetic landmark robot) and filter consistency (NEES, NIS), with k-fold
+cross-validation over contiguous blocks of one long scripted flight.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from agents.experiments.landmark import run_landmark_experiment
+from agents.sim import collect_flight
+from estimator_service.factory import MODEL_KINDS, build_filter, load_models
+from estimator_service.files import atomic_write_text
+from estimator_service.flight import Flight
+from estimator_service.gp.linalg import single_threaded_blas
+from estimator_service.models.base import PredictionModel
+from estimator_service.models.calibration import read_noise_scales, read_observation_scales
+from estimator_service.progress import ProgressBar
+from estimator_service.tracking import (
+    TrackResult,
+    aggregate_rms,
+    group_rms,
+    mean_sd,
+    segments,
+    state_error,
+    track_flight,
+)
+from estimator_service.training import TrainSettings, prediction_data, train_models
+
+__all__ = ["ReproduceSettings", "reproduce", "split_folds"]
+
+
+@dataclass(frozen=True)
+class ReproduceSettings:
+    """Sizes of the experiments; :meth:`quick` is the few-minute version.
+
+    Attributes
+    ----------
+    minutes, folds
+        Length of the scripted flight and the number of cross-validation blocks.
+    points, pseudo, max_iter
+        GP training points, sparse pseudo-inputs, optimiser iterations (paper: ~900, 50).
+    track_seconds
+        Length of each tracking segment of a held-out block (UKF and EKF track all of them).
+    particles, pf_seconds
+        The particle filters track only the first ``pf_seconds`` of each segment (an exact-GP
+        PF step costs about 0.2 s with 500 particles).
+    fig3_repeats, fig3_smallest, fig3_pseudo
+        Fig. 3: repeats per size, the smallest random subset (sizes halve from ``points``)
+        and the pseudo-input counts of the sparse curve.
+    """
+
+    minutes: float = 20.0
+    folds: int = 4
+    points: int = 900
+    pseudo: int = 50
+    max_iter: int = 60
+    track_seconds: float = 120.0
+    particles: int = 500
+    pf_seconds: float = 30.0
+    fig3_repeats: int = 3
+    fig3_smallest: int = 50
+    fig3_pseudo: tuple[int, ...] = (5, 10, 20, 50)
+    kinds: tuple[str, ...] = MODEL_KINDS
+    filters: tuple[str, ...] = ("ukf", "ekf", "pf")
+    landmark: bool = True
+    seed: int = 0
+
+    @classmethod
+    def quick(cls) -> ReproduceSettings:
+        return cls(
+            minutes=4.0, folds=2, points=150, pseudo=20, max_iter=15, track_seconds=40.0, particles=200,
+            pf_seconds=20.0, fig3_repeats=1, fig3_smallest=40, fig3_pseudo=(5, 20),
+        )  # fmt: skip
+
+
+def split_folds(flight: Flight, k: int) -> list[tuple[Flight, Flight]]:
+    """``k`` (train, test) pairs over contiguous blocks; blocks of the training set become
+    separate episodes so no transition spans a removed block."""
+    blocks = np.array_split(np.arange(len(flight)), k)
+    out = []
+    for i, test in enumerate(blocks):
+        train = np.concatenate([b for j, b in enumerate(blocks) if j != i])
+        tr = flight.select(train)
+        block_id = np.concatenate([np.full(len(b), j) for j, b in enumerate(blocks) if j != i])
+        tr = replace(tr, episode=tr.episode * k + block_id)
+        out.append((tr, flight.select(test)))
+    return out
+
+
+def one_step_errors(folder: Path, test: Flight, kind: str) -> dict[str, float]:
+    """Table 5: RMS one-step prediction error per state group; Table 6: observation error."""
+    pred, obs = load_models(folder, kind)
+    inp, change = prediction_data([test])
+    out = group_rms(state_error(pred.predict(inp[:, :12], inp[:, 12:]).mean, change))
+    z = obs.observe(test.state).mean.reshape(len(test), -1, 5)
+    e = z - test.z.reshape(z.shape)
+    e[..., 4] = (e[..., 4] + math.pi / 2) % math.pi - math.pi / 2
+    v = test.valid
+    out["ellipse_position_px"] = float(np.sqrt(np.mean(np.sum(e[v][:, :2] ** 2, axis=1))))
+    out["ellipse_size_px"] = float(np.sqrt(np.mean(e[v][:, 2:4] ** 2)))
+    out["ellipse_angle_deg"] = float(np.degrees(np.sqrt(np.mean(e[v][:, 4] ** 2))))
+    return out
+
+
+def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: str) -> dict[str, float]:
+    """Tables 7-9 and consistency: scores averaged over test segments of ``track_seconds``."""
+    f = build_filter(filt, kind, folder, **({"n_particles": s.particles} if filt == "pf" else {}))
+    seg = round(s.track_seconds / 0.25)
+    length = min(seg, round(s.pf_seconds / 0.25)) if filt == "pf" else seg
+    rows = segments(len(test), seg, length)
+    with single_threaded_blas() if filt == "pf" else nullcontext():  # PF: 266 -> 177 ms per step
+        scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
+    out = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
+    out["nees_var"] /= len(scores)  # variances of the averages over the segments
+    out["nis_var"] /= len(scores)
+    out["aggregate_rms"] = float(np.mean([aggregate_rms(sc) for sc in scores]))
+    out["steps"] = length
+    return out
+
+
+def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
+    """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
+    reduced = out / "models_no_left_turns"
+    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    train_models(
+        [train],
+        reduced,
+        kinds=["param", "gp"],
+        settings=settings,
+        seed=s.seed,
+        exclude=lambda inp: inp[:, 14] > 0.3,
+    )
+    return plot_fig4(folder_full, reduced, test, out / "fig4_left_turns.png")
+
+
+def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dict[str, float]:
+    """GP-UKF yaw error with its 3-sigma band, all data vs no left-turn data; the figures."""
+    import matplotlib.pyplot as plt
+
+    from estimator_service.plots import save_figure
+
+    left = test.control[:-1, 2] > 0.3
+    res, lim = {}, 0.0
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True, sharey=True)
+    for ax, (name, folder) in zip(
+        axes, (("full data", folder_full), ("no left turns", reduced)), strict=True
+    ):
+        ukf = build_filter("ukf", "gp", folder)
+        r = track_flight(ukf, test)
+        t = np.arange(len(r.mean)) * 0.25
+        sd = np.degrees(np.sqrt(r.cov[:, 5, 5]))
+        err = np.degrees(r.error[:, 5])
+        m = left[: len(t)]
+        lim = max(lim, 1.2 * max(3 * sd.max(), np.abs(err).max()))
+        ax.fill_between(t, -1e3, 1e3, where=m, color="0.85", lw=0)
+        ax.fill_between(t, -3 * sd, 3 * sd, color="tab:blue", alpha=0.4, lw=0, label=r"$\pm 3\sigma$")
+        ax.plot(t, err, "r", lw=0.8, label="estimate - truth")
+        ax.set(ylabel="yaw error (deg)", title=f"GP-UKF, {name} (shaded: tail pushing left)")
+        inside = np.abs(err) <= 3 * sd
+        res[f"{name}: yaw std in left turns (deg)"] = float(sd[m].mean()) if m.any() else math.nan
+        res[f"{name}: yaw std elsewhere (deg)"] = float(sd[~m].mean())
+        res[f"{name}: truth within 3 sigma"] = float(inside.mean())
+        res[f"{name}: truth within 3 sigma in left turns"] = float(inside[m].mean()) if m.any() else math.nan
+        res |= _yaw_rate_figures(name, ukf.prediction, test, r, m)
+    axes[0].set_ylim(-lim, lim)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time (s)")
+    fig.tight_layout()
+    save_figure(fig, path)
+    return res
+
+
+def _yaw_rate_figures(
+    name: str, pred: PredictionModel, test: Flight, r: TrackResult, left: np.ndarray
+) -> dict[str, float]:
+    """Yaw rate in left turns: the GP-UKF's RMS error and RMS std, and the GP prediction
+    model ``pred``'s one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
+    yaw-rate change at the true states (deg/s). Errors that repeat from step to step build
+    up in a filter that adds each step's predictive variance as independent noise."""
+    if not left.any():
+        return {}
+    inp, change = prediction_data([test])
+    out = pred.predict(inp[:, :12], inp[:, 12:])
+    one = left[: len(inp)]
+    rms = lambda a: float(np.degrees(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
+    err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), one)
+    return {
+        f"{name}: yaw-rate error in left turns (deg/s)": rms(r.error[left, 11]),
+        f"{name}: yaw-rate std in left turns (deg/s)": rms(np.sqrt(r.cov[left, 11, 11])),
+        f"{name}: one-step yaw-rate change error in left turns (deg/s)": err_rms,
+        f"{name}: one-step yaw-rate change mean error in left turns (deg/s)": err_mean,
+        f"{name}: one-step yaw-rate change error, lag-1 autocorrelation in left turns": lag1,
+        f"{name}: one-step yaw-rate change std in left turns (deg/s)": rms(np.sqrt(out.var[one, 11])),
+    }
+
+
+def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """RMS, mean and lag-1 autocorrelation of a series ``err (T,)`` over the rows in
+    ``mask (T,)``; the autocorrelation pairs consecutive rows that are both in ``mask``
+    (NaN with fewer than 3 such pairs)."""
+    pairs = np.flatnonzero(mask[:-1] & mask[1:])
+    lag1 = float(np.corrcoef(err[pairs], err[pairs + 1])[0, 1]) if pairs.size > 2 else math.nan
+    e = err[mask]
+    return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
+
+
+def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
+    """Run everything and write ``report.md`` and figures into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    flight = collect_flight(s.minutes * 60, seed=s.seed)
+    folds = split_folds(flight, s.folds)
+    table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
+    track: dict[tuple[str, str], list] = {}
+    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    total = len(folds) * (1 + len(s.filters) * len(s.kinds))
+    bar = ProgressBar("reproduce", total, unit="run", enabled=progress)
+    for i, (train, test) in enumerate(folds):
+        folder = out / f"models_fold{i}"
+        train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
+        bar.advance()
+        for kind in table5:
+            if kind in s.kinds:
+                table5[kind].append(one_step_errors(folder, test, kind))
+        for filt in s.filters:
+            for kind in s.kinds:
+                track.setdefault((filt, kind), []).append(tracking(folder, test, s, filt, kind))
+                bar.advance()
+    bar.close()
+    results = {
+        "fig3": _fig3(folds[0], s, settings, out, progress),
+        "settings": asdict(s),
+        "table5_6": {k: mean_sd(v) for k, v in table5.items() if v},
+        "tracking": {f"{f}/{k}": mean_sd(v) for (f, k), v in track.items()},
+        "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
+        "table10": run_landmark_experiment(s.seed, particles=s.particles) if s.landmark else {},
+    }
+    folders = [out / f"models_fold{i}" for i in range(len(folds))]
+    results["noise_scales"] = [read_noise_scales(f) for f in folders]
+    results["observation_scales"] = [
+        {k: v.tolist() for k, v in read_observation_scales(f).items()} for f in folders
+    ]
+    results["wall_s"] = time.perf_counter() - t0
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    from agents.experiments.report import write_report
+
+    write_report(out, results)
+    return results
+
+
+def _fig3(fold: tuple[Flight, Flight], s: ReproduceSettings, settings: TrainSettings, out: Path,
+          progress: bool) -> dict:  # fmt: skip
+    """Paper Fig. 3 on the first fold; writes ``fig3_training_points.png``."""
+    from agents.experiments.fig3 import data_sparsity, plot_data_sparsity, size_levels
+
+    points = size_levels(s.points, s.fig3_smallest)
+    pseudo = [m for m in s.fig3_pseudo if m <= s.points]
+    bar = ProgressBar("fig. 3", (len(points) + len(pseudo)) * s.fig3_repeats, unit="run", enabled=progress)
+    res = data_sparsity(
+        *fold, settings, points=points, pseudo=pseudo, repeats=s.fig3_repeats,
+        track_seconds=s.track_seconds, seed=s.seed, tick=bar.advance,
+    )  # fmt: skip
+    bar.close()
+    plot_data_sparsity(res, out / "fig3_training_points.png")
+    return res

@@ -1,0 +1,253 @@
+"""Reinforcement learning on filtered beliefs with stable-baselines3 (PPO and SAC).
+
+An agent is saved as ``<out>/model.zip`` (SB3) with ``<out>/agent.json`` describing how
+to rebuild its observations (variant, task, filter, model kind, model folder), so that
+``evaluate_agent`` and ``gpbf collect --agent`` reproduce its inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+from agents.rl.wrappers import VARIANTS, make_belief_env
+from estimator_service.files import atomic_write_text
+
+__all__ = ["AgentPolicy", "AgentSpec", "evaluate_agent", "load_agent", "make_vec", "train_agent"]
+
+ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
+TASK_ENVS = {"hover": "gpbf_env/Blimp-v0", "waypoint": "gpbf_env/BlimpWaypoint-v0"}
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """Everything needed to rebuild an agent's environment."""
+
+    algo: str = "ppo"
+    variant: str = "belief"
+    task: str = "hover"
+    filter: str = "ekf"
+    model: str = "gp"
+    models: str | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {sorted(ALGOS)}, got {self.algo!r}")
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.task not in TASK_ENVS:
+            raise ValueError(f"task must be one of {sorted(TASK_ENVS)}, got {self.task!r}")
+
+
+def make_env(spec: AgentSpec, rank: int = 0, backend: str = "inprocess", client: Any = None):
+    """One monitored env of ``spec`` (sub-env ``rank`` gets its own filter or session)."""
+    env = make_belief_env(
+        spec.variant,
+        env_id=TASK_ENVS[spec.task],
+        models=spec.models,
+        filter=spec.filter,
+        model=spec.model,
+        backend=backend,
+        client=client,
+        seed=spec.seed + rank,
+    )
+    return Monitor(env)
+
+
+def make_vec(spec: AgentSpec, n_envs: int = 1, backend: str = "inprocess", client: Any = None) -> VecEnv:
+    """SB3 vector env of ``n_envs`` independent belief envs, seeded ``spec.seed + rank``."""
+    venv = DummyVecEnv([lambda r=r: make_env(spec, r, backend, client) for r in range(n_envs)])
+    venv.seed(spec.seed)
+    return venv
+
+
+def _algo(spec: AgentSpec, venv: VecEnv, small: bool) -> BaseAlgorithm:
+    cls = ALGOS[spec.algo]
+    if spec.algo == "ppo":
+        kw = (
+            {"n_steps": 64, "batch_size": 64, "n_epochs": 2}
+            if small
+            else {"n_steps": max(2048 // venv.num_envs, 64), "batch_size": 256, "gamma": 0.98}
+        )
+    else:
+        kw = (
+            {"learning_starts": 64, "batch_size": 64, "buffer_size": 10_000}
+            if small
+            else {"learning_starts": 1000}
+        )
+    return cls("MlpPolicy", venv, seed=spec.seed, verbose=0, device="cpu", **kw)
+
+
+def train_agent(
+    spec: AgentSpec,
+    timesteps: int,
+    out_dir: str | Path,
+    *,
+    n_envs: int = 1,
+    eval_freq: int = 5000,
+    eval_episodes: int = 3,
+    progress_bar: bool = True,
+    small: bool | None = None,
+) -> Path:
+    """Train, evaluate periodically, checkpoint, save the model, the spec and a learning curve."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    venv = make_vec(spec, n_envs)
+    small = timesteps <= 5000 if small is None else small
+    agent = _algo(spec, venv, small)
+    eval_env = make_vec(AgentSpec(**{**asdict(spec), "seed": spec.seed + 10_000}), 1)
+    callbacks = CallbackList(
+        [
+            EvalCallback(
+                eval_env,
+                n_eval_episodes=eval_episodes,
+                eval_freq=max(1, eval_freq // n_envs),
+                log_path=str(out),
+                best_model_save_path=None,
+                deterministic=True,
+                verbose=0,
+            ),
+            CheckpointCallback(
+                save_freq=max(1, 5 * eval_freq // n_envs),
+                save_path=str(out / "checkpoints"),
+                name_prefix="agent",
+            ),
+        ]
+    )
+    agent.learn(timesteps, callback=callbacks, progress_bar=progress_bar)
+    agent.save(out / "model.zip")
+    atomic_write_text(out / "agent.json", json.dumps(asdict(_relative_models(spec, out)), indent=2))
+    _plot_learning_curve(out)
+    venv.close()
+    eval_env.close()
+    return out / "model.zip"
+
+
+def _plot_learning_curve(out: Path) -> None:
+    from estimator_service.plots import save_figure
+
+    data = np.load(out / "evaluations.npz") if (out / "evaluations.npz").exists() else None
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    if data is not None and len(data["timesteps"]):
+        r = data["results"]
+        ax.plot(data["timesteps"], r.mean(axis=1), marker="o")
+        ax.fill_between(data["timesteps"], r.min(axis=1), r.max(axis=1), alpha=0.2)
+    ax.set(xlabel="environment steps", ylabel="evaluation return", title="learning curve")
+    fig.tight_layout()
+    save_figure(fig, out / "learning_curve.png")
+
+
+def _relative_models(spec: AgentSpec, folder: Path) -> AgentSpec:
+    """``spec`` with its model folder written relative to the agent's folder ``folder``."""
+    if spec.models is None:
+        return spec
+    return replace(spec, models=os.path.relpath(Path(spec.models).resolve(), folder.resolve()))
+
+
+def load_agent(path: str | Path, models: str | Path | None = None) -> tuple[BaseAlgorithm, AgentSpec]:
+    """A saved agent (``model.zip``) and its :class:`AgentSpec` (``agent.json`` beside it).
+
+    The spec's model folder is resolved against the agent's folder (so an agent and its
+    models can move together and be run from any directory); ``models`` overrides it.
+    """
+    path = Path(path)
+    folder = path.parent if path.suffix == ".zip" else path
+    spec_file, model_file = folder / "agent.json", folder / "model.zip"
+    for f in (spec_file, model_file):
+        if not f.is_file():
+            raise FileNotFoundError(f"agent {os.fspath(path)!r}: no {f.name} in {os.fspath(folder)!r}")
+    spec = AgentSpec(**json.loads(spec_file.read_text()))
+    if models is not None:
+        spec = replace(spec, models=str(Path(models)))
+    elif spec.models is not None and not Path(spec.models).is_absolute():
+        spec = replace(spec, models=os.path.normpath(folder.absolute() / spec.models))
+    return ALGOS[spec.algo].load(model_file, device="cpu"), spec
+
+
+def evaluate_agent(
+    path: str | Path, episodes: int = 5, seed: int = 1000, on_episode: Callable[[int], None] | None = None,
+    models: str | Path | None = None,
+) -> dict[str, float]:  # fmt: skip
+    """Mean return, task success (hover: final distance < 0.5 m; waypoint: all reached) and,
+    for belief agents, the RMS position error of the belief, over ``episodes`` (``models``
+    overrides the agent's model folder)."""
+    agent, spec = load_agent(path, models)
+    env = make_env(AgentSpec(**{**asdict(spec), "seed": seed}))
+    returns, success, err2, n = [], [], 0.0, 0
+    for ep in range(episodes):
+        obs, info = env.reset(seed=seed + ep)
+        done, total = False, 0.0
+        while not done:
+            action, _ = agent.predict(obs, deterministic=True)
+            obs, r, terminated, truncated, info = env.step(action)
+            total += float(r)
+            done = terminated or truncated
+            if "belief_mean" in info:
+                err2 += float(np.sum((info["belief_mean"][:3] - info["state"][:3]) ** 2))
+                n += 1
+        returns.append(total)
+        final = info.get("distance_m", math.inf)
+        crashed = bool(info.get("crashed"))
+        success.append(
+            bool(terminated and not crashed) if spec.task == "waypoint" else final < 0.5 and not crashed
+        )
+        if on_episode:
+            on_episode(ep + 1)
+    env.close()
+    return {
+        "mean_return": float(np.mean(returns)),
+        "std_return": float(np.std(returns)),
+        "success_rate": float(np.mean(success)),
+        "belief_position_rms_mm": float(1000 * math.sqrt(err2 / n)) if n else math.nan,
+    }
+
+
+class AgentPolicy:
+    """A saved agent as a recorder policy ``policy(obs, info) -> action``.
+
+    It keeps its own estimate exactly as the agent's training wrapper did: reset at the
+    mocap state when ``info["t"] == 0``, then one filter step per call with the previous
+    action and the new raw observation.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        import gymnasium as gym
+
+        from agents.rl.wrappers import BeliefObservation
+
+        self.agent, spec = load_agent(path)
+        self.shadow = BeliefObservation(
+            gym.make(TASK_ENVS[spec.task]),
+            spec.variant,
+            models=spec.models,
+            filter=spec.filter,
+            model=spec.model,
+            seed=spec.seed,
+        )
+        self._prev: np.ndarray | None = None
+
+    def __call__(self, obs: dict[str, Any], info: dict[str, Any]) -> np.ndarray:
+        if self._prev is None or float(info["t"]) == 0.0:
+            self.shadow.reset_belief(info)
+            self.shadow.last_action = np.zeros(3)
+        else:
+            self.shadow.advance_belief(self._prev, obs, info)
+            self.shadow.last_action = self._prev
+        action, _ = self.agent.predict(self.shadow.features(obs, info), deterministic=True)
+        self._prev = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        return self._prev

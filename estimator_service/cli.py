@@ -1,0 +1,171 @@
+"""The estimator's commands, usable on any robot's logs: ``train``, ``track``, ``serve``.
+
+``python -m estimator_service train|track|serve ...`` runs them without the simulator;
+``gpbf`` offers the same commands (and the simulator's and agents' ones) with the same
+options. A log is a flight file (``.npz``) or a CSV file described by ``--system``
+(``docs/your-robot.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from estimator_service.cli_args import (
+    Parser,
+    add_filter_options,
+    add_quiet,
+    checked_float,
+    checked_int,
+    package_version,
+    seed,
+)
+from estimator_service.progress import ProgressBar
+
+__all__ = ["add_train_track", "main", "run_track", "run_train"]
+
+USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError)
+
+
+def _system(args: argparse.Namespace):
+    if args.system is None:
+        return None
+    from estimator_service.system import System
+
+    return System.from_json(
+        Path(args.system).read_text(encoding="utf-8"), f"system file {str(args.system)!r}"
+    )
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from estimator_service.flight import load_log
+    from estimator_service.training import TrainSettings, available_kinds, train_models
+
+    system = _system(args)
+    flights = [load_log(p, system) for p in args.logs]
+    settings = TrainSettings(
+        args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations,
+        sparse_iter=args.sparse_iter, hyper_points=args.hyper_points or None,
+        calibration_seconds=args.calibration_seconds,
+    )  # fmt: skip
+    avail = available_kinds(flights[0].system)
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
+    if "param" in avail and "param" not in kinds:
+        kinds.insert(0, "param")
+    bar = ProgressBar("train", len(kinds), unit="kind", enabled=not args.quiet)
+    iterations = {"n": 0}
+
+    def progress(kind: str, p) -> None:
+        if p is None:
+            bar.advance(1, postfix=f"{kind} done")
+            return
+        iterations["n"] += 1
+        if iterations["n"] % 25 == 0:
+            bar.update_to(
+                bar.n, postfix=f"{kind}: output {p.output}, restart {p.restart}, nll {p.objective:.4g}"
+            )
+
+    with bar:
+        timings = train_models(
+            flights, args.out, kinds=kinds, settings=settings, seed=args.seed, on_progress=progress
+        )
+    print(
+        json.dumps({"models": str(args.out), "train_seconds": {k: round(v, 1) for k, v in timings.items()}})
+    )
+    return 0
+
+
+def run_track(args: argparse.Namespace) -> int:
+    from estimator_service.factory import build_filter
+    from estimator_service.flight import load_log
+    from estimator_service.tracking import track_flight
+
+    flight = load_log(args.log, _system(args))
+    opts = {"n_particles": args.particles} if args.filter == "pf" else {}
+    filt = build_filter(args.filter, args.model, args.models, **opts)
+    with ProgressBar(f"track {args.filter}/{args.model}", len(flight) - 1, enabled=not args.quiet) as bar:
+        result = track_flight(filt, flight, rng=np.random.default_rng(args.seed), on_step=bar.update_to)
+    scores = result.scores()
+    for name, value in scores.items():
+        print(f"{name:>20s}: {value:.4g}")
+    if args.plot:
+        from estimator_service.plots import plot_tracking
+
+        plot_tracking(result, args.plot, title=f"GP-BayesFilter {args.filter.upper()} / {args.model}")
+        print(f"wrote {args.plot}")
+    print(json.dumps({k: round(v, 4) for k, v in scores.items()}))
+    return 0
+
+
+def add_train_track(sub: argparse._SubParsersAction) -> None:
+    """The ``train`` and ``track`` subcommands (shared by ``gpbf``)."""
+    t = sub.add_parser("train", help="fit every model kind from logs", description=run_train.__doc__)
+    t.add_argument("logs", nargs="+", type=Path, help="flight .npz or CSV log files")
+    t.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
+    t.add_argument(
+        "--out", type=Path, default=Path("out/models"), help="model folder to write (replaced whole)"
+    )
+    t.add_argument("--kinds", default="", help="comma-separated GP kinds (default: all the system can train)")
+    t.add_argument("--points", type=checked_int(2, 100_000), default=900, help="training points per GP")
+    t.add_argument(
+        "--pseudo", type=checked_int(1, 10_000), default=50, help="pseudo-inputs of the sparse GPs"
+    )
+    t.add_argument("--restarts", type=checked_int(1, 100), default=2, help="optimiser restarts per exact GP")
+    t.add_argument(
+        "--max-iter", type=checked_int(1, 100_000), default=100, help="L-BFGS-B iterations per restart"
+    )
+    t.add_argument("--hetero-iterations", type=checked_int(1, 100), default=2, help="EM rounds of the hetGPs")
+    t.add_argument(
+        "--sparse-iter", type=checked_int(1, 100_000), default=120, help="iterations per sparse GP"
+    )
+    t.add_argument(
+        "--hyper-points", type=checked_int(0, 100_000), default=300,
+        help="exact GPs learn hyperparameters on this many random points, then polish on all (0: all)",
+    )  # fmt: skip
+    t.add_argument(
+        "--calibration-seconds", type=checked_float(0.0, 1e6), default=60.0,
+        help="noise calibration on the first log's first SECONDS (at most a quarter of it; 0: none)",
+    )  # fmt: skip
+    t.add_argument("--seed", type=seed, default=0, help="seed of the subsampling and restarts")
+    add_quiet(t)
+    t.set_defaults(func=run_train)
+
+    k = sub.add_parser("track", help="run a filter over a log and score it")
+    k.add_argument("log", type=Path, help="flight .npz or CSV log")
+    k.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
+    add_filter_options(k)
+    k.add_argument("--seed", type=seed, default=0, help="seed of the particle filter")
+    k.add_argument("--plot", type=Path, default=None, help="PNG of estimate vs truth with 3-sigma bands")
+    add_quiet(k)
+    k.set_defaults(func=run_track)
+
+
+def build_parser(prog: str = "python -m estimator_service") -> Parser:
+    p = Parser(prog=prog, description=__doc__)
+    p.add_argument("--version", action="version", version=f"gpbf {package_version()}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
+    sub.add_parser("serve", help="run the estimator service (see 'serve --help')", add_help=False)
+    add_train_track(sub)
+    return p
+
+
+def run(args: argparse.Namespace, prog: str) -> int:
+    """Run a parsed command; a user's mistake (bad file, bad value) is one line, exit code 2."""
+    try:
+        return int(args.func(args))
+    except USER_ERRORS as exc:
+        print(f"{prog} {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["serve"]:
+        from estimator_service.service.server import main as serve
+
+        return serve(argv[1:])
+    return run(build_parser().parse_args(argv), "python -m estimator_service")

@@ -1,0 +1,116 @@
+"""Command-line plumbing shared by ``gpbf`` and ``python -m estimator_service``: a parser
+whose errors are one line and exit code 2, range-checked option types, and the options
+that several commands share (one definition, one default)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import NoReturn
+
+__all__ = [
+    "DEFAULT_FILTER",
+    "DEFAULT_MODEL",
+    "Parser",
+    "add_filter_options",
+    "add_quiet",
+    "checked_float",
+    "checked_int",
+    "package_version",
+    "seed",
+]
+
+DEFAULT_FILTER = "ekf"
+DEFAULT_MODEL = "gp"
+FILTERS = ("ekf", "ukf", "pf")
+MODELS = ("param", "gp", "egp", "hetgp", "sparse")
+
+
+def package_version() -> str:
+    try:
+        return version("gpbf")
+    except PackageNotFoundError:  # run from a checkout without installing
+        return "0+unknown"
+
+
+class Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` that shows defaults in ``--help`` and reports a mistake as one
+    line (``prog: error: ...``) with exit code 2, without the usage block."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: error: {message} (see '{self.prog} --help')", file=sys.stderr)
+        raise SystemExit(2)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the description's line breaks and appends ``(default: ...)`` to option help."""
+
+
+def checked_int(low: int | None = None, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be in {_range(low, high)}, got {value}")
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def checked_float(
+    low: float | None = None, high: float | None = None, *, low_open: bool = False
+) -> Callable[[str], float]:
+    """An argparse type: a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        below = low is not None and (value <= low if low_open else value < low)
+        if not math.isfinite(value) or below or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be in {_range(low, high, low_open)}, got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def _range(low: float | None, high: float | None, low_open: bool = False) -> str:
+    lo = "-inf" if low is None else str(low)
+    return f"{'(' if low_open or low is None else '['}{lo}, {'inf)' if high is None else f'{high}]'}"
+
+
+seed = checked_int(0, 2**63 - 1)
+
+
+def add_quiet(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = False) -> None:
+    """``--models``, ``--filter``, ``--model`` and ``--particles``, as every command has them."""
+    default = None if models_required else Path("out/models")
+    p.add_argument(
+        "--models",
+        type=Path,
+        required=models_required,
+        default=default,
+        help="model folder from 'gpbf train'",
+    )
+    p.add_argument("--filter", choices=FILTERS, default=DEFAULT_FILTER, help="Bayes filter")
+    p.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL, help="model kind")
+    p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")

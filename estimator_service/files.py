@@ -1,0 +1,95 @@
+"""Atomic file writes: a reader sees the old file or the new one, never half of one.
+
+Every file the estimator writes (models, flights, calibration, reports) goes through
+:func:`atomic_write`: the bytes go to a temporary file in the destination folder, are
+flushed, and the temporary file is renamed over the destination. The result has the mode
+an ordinary ``open(path, "w")`` would give (``0o666`` less the process umask), not the
+``0o600`` of a bare temporary file. A failed write removes its temporary file; one
+killed outright (``SIGKILL``) leaves a ``.gpbf-*.tmp`` file behind, which
+:func:`remove_stale_temps` (called by the model store before it writes a folder)
+clears.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+__all__ = [
+    "TEMP_PREFIX",
+    "atomic_savez",
+    "atomic_write",
+    "atomic_write_text",
+    "current_umask",
+    "remove_stale_temps",
+]
+
+TEMP_PREFIX = ".gpbf-"
+TEMP_SUFFIX = ".tmp"
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the OS allows."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    old = os.umask(0o022)  # no /proc: read by setting (briefly) and restoring
+    os.umask(old)
+    return old
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], object]) -> Path:
+    """Call ``write(fh)`` on a temporary file beside ``path``, then rename it to ``path``.
+
+    The parent folder is created when missing. On any exception the temporary file is
+    removed and the destination is left as it was.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=TEMP_SUFFIX, dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~current_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def atomic_savez(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
+    """``np.savez(path, **arrays)`` written atomically (no pickle on reading back)."""
+    return atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """``text`` as UTF-8, written atomically."""
+    return atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def remove_stale_temps(folder: str | os.PathLike[str], older_than_s: float = 0.0) -> int:
+    """Remove this module's temporary files in ``folder`` (not recursing) that are older
+    than ``older_than_s`` seconds; returns how many were removed."""
+    now, removed = time.time(), 0
+    for p in Path(folder).glob(f"{TEMP_PREFIX}*{TEMP_SUFFIX}"):
+        try:
+            if now - p.stat().st_mtime >= older_than_s:
+                p.unlink()
+                removed += 1
+        except FileNotFoundError:
+            continue
+    return removed

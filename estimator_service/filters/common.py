@@ -1,0 +1,188 @@
+"""Beliefs, step reports, angle handling and covariance hygiene shared by all filters."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import logsumexp
+from scipy.stats import chi2
+
+from estimator_service.reprs import short_repr
+
+__all__ = [
+    "GaussianBelief",
+    "ParticleBelief",
+    "StepInfo",
+    "Wrapping",
+    "make_pd",
+    "nis_from_cholesky",
+]
+
+FloatArray = NDArray[np.float64]
+DIVERGENCE_P = 1e-9  # an innovation this improbable under chi^2 flags divergence
+
+
+@dataclass(frozen=True)
+class GaussianBelief:
+    """``N(mean, cov)``: ``mean (n,)``, ``cov (n, n)``."""
+
+    mean: FloatArray
+    cov: FloatArray
+
+    def __post_init__(self) -> None:
+        m, c = np.asarray(self.mean, dtype=np.float64), np.asarray(self.cov, dtype=np.float64)
+        if m.ndim != 1 or c.shape != (m.size, m.size):
+            raise ValueError(f"belief mean (n,) and cov (n, n) expected, got {m.shape}, {c.shape}")
+        object.__setattr__(self, "mean", m)
+        object.__setattr__(self, "cov", c)
+
+    def __repr__(self) -> str:
+        with np.printoptions(precision=3, suppress=True, threshold=24, linewidth=400):
+            return f"GaussianBelief(mean={self.mean}, std={np.sqrt(np.abs(np.diag(self.cov)))})"
+
+
+@dataclass(frozen=True)
+class ParticleBelief:
+    """Weighted particles: ``particles (M, n)`` and normalised ``log_weights (M,)``."""
+
+    __repr__ = short_repr
+
+    particles: FloatArray
+    log_weights: FloatArray
+
+    @classmethod
+    def from_gaussian(
+        cls, belief: GaussianBelief, n_particles: int, rng: np.random.Generator
+    ) -> ParticleBelief:
+        """``n_particles`` equally weighted draws from a Gaussian belief."""
+        l = make_pd(belief.cov)[1]
+        x = belief.mean + rng.standard_normal((n_particles, belief.mean.size)) @ l.T
+        return cls(x, np.full(n_particles, -math.log(n_particles)))
+
+    @property
+    def weights(self) -> FloatArray:
+        return np.exp(self.log_weights)
+
+    @property
+    def ess(self) -> float:
+        """Effective sample size ``1 / sum w^2``."""
+        return float(1.0 / np.sum(np.exp(2.0 * self.log_weights)))
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What one filter step reports besides the belief.
+
+    Attributes
+    ----------
+    nis
+        Normalised innovation squared ``r^T S^-1 r`` (NaN when nothing was observed).
+    dof
+        Number of observation values used (its chi-square degrees of freedom).
+    diverged
+        True when the update was numerically unusable (it was then skipped) or the
+        innovation is implausible (chi-square tail below ``1e-9``).
+    ess
+        Effective sample size after weighting (particle filter only).
+    resampled
+        Whether the particle filter resampled.
+    """
+
+    nis: float = math.nan
+    dof: int = 0
+    diverged: bool = False
+    ess: float | None = None
+    resampled: bool = False
+
+
+@dataclass(frozen=True)
+class Wrapping:
+    """Periodic components of the state and the observation (0 = not periodic).
+
+    E.g. Euler angles have period ``2 pi``; an ellipse orientation has period ``pi``.
+    """
+
+    state: FloatArray
+    obs: FloatArray
+
+    @classmethod
+    def none(cls, n: int, m: int) -> Wrapping:
+        return cls(np.zeros(n), np.zeros(m))
+
+    @staticmethod
+    def _wrap(d: FloatArray, periods: FloatArray) -> FloatArray:
+        if not np.any(periods):
+            return d
+        p = np.where(periods > 0, periods, 1.0)
+        wrapped = d - p * np.ceil(d / p - 0.5)  # into (-p/2, p/2]
+        return np.where(periods > 0, wrapped, d)
+
+    def state_diff(self, d: FloatArray) -> FloatArray:
+        return self._wrap(d, self.state)
+
+    def obs_diff(self, d: FloatArray, idx: NDArray[np.intp] | slice = slice(None)) -> FloatArray:
+        return self._wrap(d, self.obs[idx])
+
+    def state_value(self, x: FloatArray) -> FloatArray:
+        """Angles of a state wrapped into ``(-p/2, p/2]``."""
+        return self._wrap(x, self.state)
+
+    def mean(self, values: FloatArray, weights: FloatArray, periods: FloatArray) -> FloatArray:
+        """Weighted mean of rows ``values (K, n)`` with periodic components.
+
+        Periodic components average the wrapped offsets from the first row, which is exact
+        for a linear spread and allows the UKF's negative centre weight.
+        """
+        ref = values[0]
+        offsets = self._wrap(values - ref, periods)
+        return self._wrap(ref + weights @ offsets, periods)
+
+    def circular_mean(self, values: FloatArray, weights: FloatArray) -> FloatArray:
+        """Weighted mean of particles with non-negative weights (atan2 for angles)."""
+        lin = weights @ values
+        p = np.where(self.state > 0, self.state, 2 * math.pi)
+        ang = 2 * math.pi * values / p
+        circ = p / (2 * math.pi) * np.arctan2(weights @ np.sin(ang), weights @ np.cos(ang))
+        return np.where(self.state > 0, circ, lin)
+
+
+def make_pd(cov: FloatArray, floor: float = 1e-12) -> tuple[FloatArray, FloatArray]:
+    """Symmetrise ``cov`` and return it with its lower Cholesky factor.
+
+    If it is not positive definite, eigenvalues are raised to ``floor * trace / n``.
+    """
+    c = 0.5 * (cov + cov.T)
+    try:
+        return c, np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        pass
+    w, v = np.linalg.eigh(c)
+    eps = max(floor * float(np.trace(c)) / len(c), floor)
+    c = (v * np.maximum(w, eps)) @ v.T
+    c = 0.5 * (c + c.T)
+    return c, np.linalg.cholesky(c + eps * np.eye(len(c)))
+
+
+def nis_from_cholesky(ls: FloatArray, r: FloatArray) -> float:
+    """``r^T S^-1 r`` given the lower Cholesky factor of ``S``."""
+    from scipy.linalg import solve_triangular
+
+    w = solve_triangular(ls, r, lower=True, check_finite=False)
+    return float(w @ w)
+
+
+def implausible(nis: float, dof: int) -> bool:
+    """Chi-square tail probability of ``nis`` below :data:`DIVERGENCE_P`."""
+    return dof > 0 and (not math.isfinite(nis) or chi2.sf(nis, dof) < DIVERGENCE_P)
+
+
+def normalise_log_weights(logw: FloatArray) -> FloatArray:
+    """``logw - logsumexp(logw)``."""
+    return logw - logsumexp(logw)
+
+
+def finite(*arrays: FloatArray) -> bool:
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)

@@ -1,0 +1,200 @@
+"""Exact GP regression: the fitted posterior and its batched prediction (paper eq. 1-3,
+20-22); hyperparameters are learned in :mod:`estimator_service.gp.hyper` (eq. 5-10)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator_service.gp.base import (
+    GPPrediction,
+    ProgressCallback,
+    Scaler,
+    check_query,
+    check_training_data,
+)
+from estimator_service.gp.hyper import initial_thetas, learn_thetas, random_subset
+from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta
+from estimator_service.gp.linalg import (
+    chol_solve,
+    robust_cholesky,
+    tri_solve,
+)
+from estimator_service.reprs import short_repr
+
+__all__ = ["ExactGP", "fit_exact", "unscale"]
+
+FloatArray = NDArray[np.float64]
+_CHUNK_BYTES = 256 * 2**20  # cap on the (P, M, n) kernel block held at once
+
+
+@dataclass(frozen=True, eq=False)
+class ExactGP:
+    """A fitted exact multi-output GP: one independent SE-ARD GP per output.
+
+    Built by :func:`fit_exact` (or :meth:`from_theta`); holds everything prediction needs,
+    computed once. Inputs and targets are standardised internally.
+
+    Attributes
+    ----------
+    theta: (P, d + 2)
+        Log hyperparameters per output, in standardised units.
+    x_train: (n, d)
+        Standardised training inputs.
+    chol_t: (P, n, n)
+        Transposed lower Cholesky factors of ``K + noise`` (so ``chol_t[p].T`` is
+        Fortran-ordered for BLAS).
+    alpha: (P, n)
+        ``(K + noise)^-1 y`` per output.
+    noise_profile: (P, n) or None
+        Relative per-point training noise (heteroscedastic GP), None when homoscedastic.
+    """
+
+    __repr__ = short_repr
+
+    x_scaler: Scaler
+    y_scaler: Scaler
+    theta: FloatArray
+    x_train: FloatArray
+    chol_t: FloatArray
+    alpha: FloatArray
+    noise_profile: FloatArray | None = None
+    kind: str = "exact"
+
+    _kernel: CrossKernel = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for arr in (self.theta, self.x_train, self.chol_t, self.alpha):
+            arr.flags.writeable = False
+        object.__setattr__(self, "_kernel", CrossKernel.build(self.x_train, self.theta, self.alpha))
+
+    @classmethod
+    def from_theta(
+        cls, x: FloatArray, y: FloatArray, theta: FloatArray, x_scaler: Scaler, y_scaler: Scaler,
+        noise_profile: FloatArray | None = None,
+    ) -> ExactGP:  # fmt: skip
+        """Posterior for standardised data ``x (n, d)``, ``y (n, P)`` and ``theta (P, d+2)``."""
+        n, p_out = y.shape
+        chol_t = np.empty((p_out, n, n))
+        alpha = np.empty((p_out, n))
+        prof = np.ones((p_out, n)) if noise_profile is None else noise_profile
+        for p in range(p_out):  # training-time only
+            ell, sf2, sn2 = split_theta(theta[p])
+            k = se_kernel(x, x, ell, sf2)
+            k[np.diag_indices_from(k)] += sn2 * prof[p]
+            l, _ = robust_cholesky(k)
+            chol_t[p] = l.T
+            alpha[p] = chol_solve(l, y[:, p])
+        return cls(x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile)
+
+    @property
+    def input_dim(self) -> int:
+        return self.x_train.shape[1]
+
+    @property
+    def output_dim(self) -> int:
+        return self.theta.shape[0]
+
+    @property
+    def noise_var(self) -> FloatArray:
+        """Noise variance per output ``(P,)`` in original units (homoscedastic part)."""
+        return np.exp(2 * self.theta[:, -1]) * self.y_scaler.std**2
+
+    def latent(
+        self, xs: FloatArray, return_var: bool, return_jac: bool
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+        """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
+        p_out, n = self.alpha.shape
+        chunk = max(1, _CHUNK_BYTES // (8 * p_out * n))
+        if xs.shape[0] > chunk:
+            parts = [
+                self.latent(xs[i : i + chunk], return_var, return_jac) for i in range(0, xs.shape[0], chunk)
+            ]
+            return tuple(
+                None if parts[0][j] is None else np.concatenate([q[j] for q in parts]) for j in range(3)
+            )  # type: ignore[return-value]
+        ks, mean, jac = self._kernel(xs, return_jac)
+        sf2 = np.exp(2.0 * self.theta[:, -2])
+        var = None
+        if return_var:
+            var = np.empty_like(mean)
+            for p in range(p_out):  # one BLAS-3 triangular solve per output, all queries at once
+                v = tri_solve(self.chol_t[p].T, ks[p].T, overwrite_b=True)
+                var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)
+            np.maximum(var, 0.0, out=var)
+        return mean, var, jac
+
+    def noise_std_units(self, xs: FloatArray) -> FloatArray:
+        """Standardised noise variance at queries ``xs (M, d)`` -> ``(M, P)``."""
+        return np.broadcast_to(np.exp(2 * self.theta[:, -1]), (xs.shape[0], self.output_dim))
+
+    def predict(
+        self, x: FloatArray, *, return_var: bool = True, return_jac: bool = False,
+        include_noise: bool = True,
+    ) -> GPPrediction:  # fmt: skip
+        """Batched prediction for queries ``x (M, d)``; see :class:`GPPrediction`."""
+        xq = check_query(x, self.input_dim)
+        xs = self.x_scaler.apply(xq)
+        mean, var, jac = self.latent(xs, return_var, return_jac)
+        if var is not None and include_noise:
+            var = var + self.noise_std_units(xs)
+        return unscale(self.x_scaler, self.y_scaler, mean, var, jac)
+
+
+def unscale(
+    xsc: Scaler, ysc: Scaler, mean: FloatArray, var: FloatArray | None, jac: FloatArray | None
+) -> GPPrediction:
+    """Standardised predictions back to original units."""
+    return GPPrediction(
+        mean=mean * ysc.std + ysc.mean,
+        var=None if var is None else var * ysc.std**2,
+        jac=None if jac is None else jac * (ysc.std[:, None] / xsc.std[None, :]),
+    )
+
+
+def fit_exact(
+    x: FloatArray,
+    y: FloatArray,
+    *,
+    restarts: int = 3,
+    max_iter: int = 200,
+    rng: np.random.Generator | None = None,
+    callback: ProgressCallback | None = None,
+    hyper_points: int | None = None,
+    polish_iter: int = 15,
+) -> ExactGP:
+    """Learn one SE-ARD GP per output column by maximising the marginal likelihood.
+
+    Parameters
+    ----------
+    x: (n, d)
+        Training inputs.
+    y: (n, P) or (n,)
+        Training targets.
+    restarts
+        L-BFGS-B runs per output from :func:`initial_thetas`; the best is kept.
+    max_iter
+        Iterations per run.
+    rng
+        For the random restarts (beyond the third), the distance sample and the subset.
+    callback
+        Receives a :class:`Progress` every optimiser iteration.
+    hyper_points
+        When set and smaller than ``n``: the restarts run on a random subset of this many
+        points (``(n / hyper_points)^3`` times cheaper per iteration), then ``polish_iter``
+        iterations on all points start from the subset's optimum. The posterior always
+        uses all points.
+    """
+    xa, ya = check_training_data(x, y, min_points=3)
+    rng = np.random.default_rng(0) if rng is None else rng
+    xsc, ysc = Scaler.fit(xa), Scaler.fit(ya)
+    xs, ys = xsc.apply(xa), ysc.apply(ya)
+    starts = initial_thetas(xs, max(1, restarts), rng)
+    subset = random_subset(len(xs), hyper_points, rng)
+    theta = learn_thetas(
+        xs, ys, [starts] * ys.shape[1], max_iter=max_iter, name="exact", callback=callback,
+        subset=subset, polish_iter=polish_iter,
+    )  # fmt: skip
+    return ExactGP.from_theta(xs, ys, theta, xsc, ysc)

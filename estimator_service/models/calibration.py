@@ -1,0 +1,168 @@
+"""Noise calibration: prediction and observation models whose noise variance is scaled.
+
+A GP's predictive variance (and the parametric model's residual variance) describes
+one-step errors of independent transitions. A filter chains them, and unmodelled effects
+that persist over many steps (on the simulated blimp: wind gusts with a 3 s correlation
+time) make every filter overconfident. One scalar per model kind, chosen on training
+flights so that the filter's average NEES matches the state dimension, corrects that
+(:func:`estimator_service.calibrate.calibrate_noise`); it is stored beside the models in
+``calibration.json`` and applied by :func:`estimator_service.factory.load_models`.
+
+Observation GPs are overconfident in another way: their variance is smallest on their own
+training frames, and held-out states lie between them (paper-size GP, first held-out blimp
+block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
+camera).
+A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
+particles (:func:`estimator_service.calibrate.calibrate_observation` measures it on a stretch of the
+training flight kept out of the observation training set; one scale per output).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator_service.files import atomic_write_text
+from estimator_service.models.base import ModelOutput, ObservationModel, PredictionModel
+from estimator_service.reprs import short_repr
+
+__all__ = [
+    "CALIBRATION_FILE",
+    "NoiseScaledObservation",
+    "NoiseScaledPrediction",
+    "read_noise_scales",
+    "read_observation_scales",
+    "write_noise_scales",
+]
+
+FloatArray = NDArray[np.float64]
+CALIBRATION_FILE = "calibration.json"
+
+
+@dataclass(frozen=True)
+class NoiseScaledPrediction:
+    """``inner`` with its noise variance multiplied by ``scale`` (mean and Jacobian as is)."""
+
+    __repr__ = short_repr
+
+    inner: PredictionModel
+    scale: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"noise scale must be finite and > 0, got {self.scale!r}")
+
+    @property
+    def state_dim(self) -> int:
+        return self.inner.state_dim
+
+    @property
+    def control_dim(self) -> int:
+        return self.inner.control_dim
+
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        """``inner.predict`` with ``var * scale``: mean ``(M, n)``, var ``(M, n)``, jac ``(M, n, n)``."""
+        out = self.inner.predict(x, u, jac=jac, var=var)
+        return ModelOutput(out.mean, out.var * self.scale, out.jac)
+
+
+@dataclass(frozen=True)
+class NoiseScaledObservation:
+    """``inner`` with its noise variance multiplied per output by ``scale (m,)``."""
+
+    __repr__ = short_repr
+
+    inner: ObservationModel
+    scale: FloatArray
+
+    def __post_init__(self) -> None:
+        s = np.asarray(self.scale, dtype=np.float64)
+        if s.shape != (self.inner.obs_dim,) or not np.all(np.isfinite(s) & (s > 0)):
+            raise ValueError(
+                f"observation noise scale must be {self.inner.obs_dim} finite numbers > 0, got {self.scale!r}"
+            )
+        object.__setattr__(self, "scale", s)
+
+    @property
+    def state_dim(self) -> int:
+        return self.inner.state_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return self.inner.obs_dim
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        """``inner.observe`` with ``var * scale``: mean ``(M, m)``, var ``(M, m)``, jac ``(M, m, n)``."""
+        out = self.inner.observe(x, jac=jac, var=var)
+        return ModelOutput(out.mean, out.var * self.scale, out.jac)
+
+
+def _read(folder: str | os.PathLike[str]) -> dict:
+    path = Path(folder) / CALIBRATION_FILE
+    if not path.exists():
+        return {}
+    try:
+        raw = json.loads(path.read_text())
+        if not isinstance(raw, dict):
+            raise TypeError("not an object")
+        return raw
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{os.fspath(path)!r}: expected a JSON object ({e})") from e
+
+
+def _section(folder: str | os.PathLike[str], key: str, convert, want: str) -> dict[str, FloatArray]:
+    """``{kind: convert(value)}`` of one section of ``folder/calibration.json``, each value
+    checked to be finite and > 0."""
+    path = os.fspath(Path(folder) / CALIBRATION_FILE)
+    try:
+        out = {str(k): convert(v) for k, v in _read(folder).get(key, {}).items()}
+    except (ValueError, TypeError, AttributeError) as e:
+        raise ValueError(f"{path!r}: expected {{'{key}': {want}}} ({e})") from e
+    bad = {k: v.tolist() for k, v in out.items() if not np.all(np.isfinite(v) & (v > 0))}
+    if bad:
+        raise ValueError(f"{path!r}: {key} values must be finite and > 0, got {bad}")
+    return out
+
+
+def read_noise_scales(folder: str | os.PathLike[str]) -> dict[str, float]:
+    """``{model kind: process-noise scale}`` from ``folder/calibration.json`` (empty when
+    there is none)."""
+    scales = _section(folder, "noise_scale", lambda v: np.array(float(v)), "{kind: number}")
+    return {k: float(v) for k, v in scales.items()}
+
+
+def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:
+    """``{model kind: observation-noise scales (m,)}`` from ``folder/calibration.json``."""
+    return _section(
+        folder,
+        "observation_noise_scale",
+        lambda v: np.array(v, dtype=np.float64).reshape(-1),
+        "{kind: [numbers]}",
+    )
+
+
+def write_noise_scales(
+    folder: str | os.PathLike[str],
+    scales: dict[str, float],
+    observation: dict[str, FloatArray] | None = None,
+    **details: object,
+) -> Path:
+    """Merge process-noise ``scales`` and per-output ``observation`` scales into
+    ``folder/calibration.json`` (written to a temporary file, then renamed)."""
+    path = Path(folder) / CALIBRATION_FILE
+    merged = {**read_noise_scales(folder), **{k: float(v) for k, v in scales.items()}}
+    obs = {k: v.tolist() for k, v in read_observation_scales(folder).items()}
+    obs.update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (observation or {}).items()})
+    old = _read(folder).get("details", {})
+    body = {"noise_scale": merged, "observation_noise_scale": obs, "details": {**old, **details}}
+    return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
+
+
+def _plain(o: object) -> object:
+    return o.tolist() if isinstance(o, np.ndarray) else float(o)  # type: ignore[arg-type]

@@ -1,0 +1,63 @@
+"""The service's zenoh key expressions: the one owner of every key string.
+
+``gpbf/<blimp>/<kind>`` for a blimp's inputs (``control``, ``camera/<k>``), outputs
+(``belief``, ``error``) and queries (``step``, ``reset``, ``status``); a liveliness token
+``gpbf/@service/<id>`` per running service. ``docs/protocol.md`` documents them.
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = [
+    "BLIMP_ID",
+    "INPUTS",
+    "LIVELINESS_PREFIX",
+    "OUTPUTS",
+    "PREFIX",
+    "QUERIES",
+    "blimp_key",
+    "camera_key",
+    "liveliness_key",
+    "parse_key",
+    "wildcard",
+]
+
+PREFIX = "gpbf"
+LIVELINESS_PREFIX = f"{PREFIX}/@service"
+BLIMP_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+INPUTS = ("control", "camera")
+OUTPUTS = ("belief", "error")
+QUERIES = ("step", "reset", "status")
+
+
+def blimp_key(blimp: str, kind: str) -> str:
+    """``gpbf/<blimp>/<kind>``."""
+    return f"{PREFIX}/{blimp}/{kind}"
+
+
+def camera_key(blimp: str, camera: int) -> str:
+    """``gpbf/<blimp>/camera/<k>``."""
+    return f"{PREFIX}/{blimp}/camera/{camera}"
+
+
+def wildcard(kind: str) -> str:
+    """The key expression that matches ``kind`` for every blimp (``camera``: every camera)."""
+    return f"{PREFIX}/*/camera/*" if kind == "camera" else f"{PREFIX}/*/{kind}"
+
+
+def liveliness_key(service_id: str) -> str:
+    return f"{LIVELINESS_PREFIX}/{service_id}"
+
+
+def parse_key(key: str) -> tuple[str | None, str, int | None]:
+    """``(blimp or None when invalid, kind, camera index)`` of a received key; the camera
+    index is -1 for a camera key whose last part is not ASCII digits, None elsewhere."""
+    parts = key.split("/")
+    blimp = parts[1] if len(parts) >= 3 else ""
+    kind = parts[2] if len(parts) >= 3 else ""
+    camera = None
+    if kind == "camera":
+        last = parts[3] if len(parts) == 4 else ""
+        camera = int(last) if last.isascii() and last.isdigit() and len(last) <= 6 else -1
+    return (blimp if BLIMP_ID.match(blimp) else None), kind, camera

@@ -1,0 +1,358 @@
+"""One blimp's estimator session: its belief and input queue.
+
+Zenoh callbacks only enqueue; a worker of the shared pool
+(:mod:`estimator_service.service.workers`) decodes, validates and filters, so filtering
+never runs in a zenoh thread. A message that fails validation, arrives late (older than
+the session's time) or makes the filter fail is rejected and counted, and the belief
+stays as it was.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from estimator_service.filters import GaussianBelief, StepInfo
+from estimator_service.service.protocol import (
+    PROTOCOL_VERSION,
+    ProtocolError,
+    decode,
+    encode,
+    encode_belief,
+    parse_camera,
+    parse_control,
+    parse_reset,
+    parse_step,
+)
+from estimator_service.service.workers import WorkerPool
+from estimator_service.system import System
+
+__all__ = ["Session", "SessionSettings", "WorkerPool", "step_together"]
+
+QUEUE_CAP = 100_000
+BATCH = 32  # inputs a worker takes from one session before giving others a turn
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """Shared by all sessions of a service: the system the models describe (its ``dt``,
+    sensor layout, control and state sizes, and the prior of a new session)."""
+
+    system: System
+
+
+@dataclass
+class Session:
+    """State and worker of one blimp.
+
+    ``make_filter(filter_name, model_name)`` returns a (shared, immutable) filter;
+    ``publish(kind, payload)`` sends ``belief`` or ``error`` messages.
+    """
+
+    blimp: str
+    filter_name: str
+    model_name: str
+    settings: SessionSettings
+    make_filter: Callable[[str, str], Any]
+    publish: Callable[[str, bytes], None]
+    model_version: str = ""
+    seed: int = 0
+    steps: int = 0
+    rejected: int = 0
+    late: int = 0
+    batched: int = 0
+    t: float | None = None
+    pool: WorkerPool | None = None
+    _pending: deque = field(default_factory=deque)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _scheduled: bool = False
+    _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
+    _controls: list = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._filter = self.make_filter(self.filter_name, self.model_name)
+        sys_ = self.settings.system
+        prior = GaussianBelief(np.array(sys_.prior_mean), np.diag(np.square(sys_.prior_std)))
+        self._install(prior, self.seed)
+        self._own_pool = self.pool is None
+        if self.pool is None:
+            self.pool = WorkerPool(1, step_together)
+
+    # -- called from zenoh callbacks: enqueue only --------------------------------------------
+    def submit(self, kind: str, payload: bytes, query: Any = None, extra: Any = None) -> None:
+        with self._lock:
+            full = len(self._pending) >= QUEUE_CAP
+            if not full:
+                self._pending.append((kind, payload, query, extra))
+                wake, self._scheduled = not self._scheduled, True
+        if full:
+            self.rejected += 1
+            if query is not None:
+                query.reply_err(encode({"v": PROTOCOL_VERSION, "error": "session queue full"}))
+        elif wake:
+            self.pool.schedule(self)
+
+    def stop(self) -> None:
+        if self._own_pool:
+            self.pool.stop()
+
+    # -- what the worker pool calls (see WorkerPool) ---------------------------------------------
+    @property
+    def batch_key(self) -> int | None:
+        """Sessions with the same key can be stepped in one batched call (None: cannot)."""
+        return id(self._filter) if hasattr(self._filter, "step_many") else None
+
+    def drain(self) -> None:
+        self._drain()
+
+    def head_step(self) -> tuple | None:
+        return self._head_step()
+
+    # -- worker ----------------------------------------------------------------------------------
+    def _drain(self) -> None:
+        """Run up to :data:`BATCH` pending inputs (called by one worker at a time)."""
+        for _ in range(BATCH):
+            with self._lock:
+                if not self._pending:
+                    self._scheduled = False
+                    return
+                job = self._pending.popleft()
+            self._run_one(*job)
+        self._reschedule()
+
+    def _reschedule(self) -> None:
+        """After a worker's turn: back on the ready queue if more inputs wait."""
+        with self._lock:
+            again = bool(self._pending)
+            self._scheduled = again
+        if again:
+            self.pool.schedule(self)
+
+    def _run_one(self, kind: str, payload: bytes, query: Any, extra: Any) -> None:
+        self._answer((kind, payload, query, extra), lambda: self._handle(kind, payload, extra))
+        if query is not None:
+            query.drop()
+
+    def _answer(self, job: tuple, compute: Callable[[], bytes | None]) -> None:
+        """Reply to ``job``'s query (if any) with ``compute()``, or reject the input."""
+        kind, _, query, _ = job
+        try:
+            reply = compute()
+            if query is not None:
+                query.reply(query.key_expr, reply)
+            if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
+                self.publish("belief", reply)
+        except ProtocolError as exc:
+            self._reject(str(exc), kind, query)
+        except Exception as exc:  # a filter failure must not kill the session
+            self._reject(f"{type(exc).__name__}: {exc}", kind, query)
+
+    # -- batched steps (see WorkerPool) ----------------------------------------------------------
+    def _head_step(self) -> tuple | None:
+        """Pop the next input if it is a lock-step ``step`` (to batch it), else None."""
+        with self._lock:
+            if self._pending and self._pending[0][0] == "step":
+                return self._pending.popleft()
+        return None
+
+    def _close_job(self, job: tuple) -> None:
+        """After a batched job: release its query; back on the ready queue if more wait."""
+        if job[2] is not None:
+            job[2].drop()
+        self._reschedule()
+
+    def _reject(self, text: str, kind: str, query: Any) -> None:
+        self.rejected += 1
+        msg = encode({"v": PROTOCOL_VERSION, "blimp": self.blimp, "input": kind, "error": text})
+        self.publish("error", msg)
+        if query is not None:
+            query.reply_err(msg)
+
+    def _handle(self, kind: str, payload: bytes, extra: Any) -> bytes | None:
+        if kind == "status":
+            return self._status()
+        if kind == "step":
+            return self._step(payload)
+        msg = decode(payload)
+        if kind == "reset":
+            return self._reset(parse_reset(msg, self.settings.system.state_dim))
+        if kind == "control":
+            c = parse_control(msg, self.settings.system.control_dim)
+            self._check_time(c.t)
+            self._controls.append((c.t, c.u))
+            self._controls.sort(key=lambda tc: tc[0])
+            return None
+        if kind == "camera":
+            return self._camera(parse_camera(msg, extra, self._sizes))
+        raise ProtocolError(f"unknown input {kind!r}")
+
+    def _check_time(self, t: float) -> None:
+        if self.t is not None and t < self.t - 1e-9:
+            self.late += 1
+            raise ProtocolError(
+                f"field 't': {t} is older than the session time {self.t} (late or out of order)"
+            )
+
+    # -- filtering ---------------------------------------------------------------------------------
+    @property
+    def _sizes(self) -> list[int]:
+        return [sen.size for sen in self.settings.system.sensors]
+
+    def _install(self, belief: GaussianBelief, seed: int) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._belief = self._filter.initial(belief, self._rng)
+
+    def _predict(self, belief: Any, u: np.ndarray) -> Any:
+        return self._filter.predict(belief, u, self._rng)
+
+    def _update(self, prior: Any, z: np.ndarray, valid: np.ndarray) -> tuple[Any, StepInfo]:
+        if not valid.any():
+            return prior, StepInfo()
+        return self._filter.update(prior, z, valid, self._rng)
+
+    def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
+        """Adopt the new belief (only after everything succeeded) and encode it (the caller
+        replies with it and publishes it)."""
+        g = self._filter.gaussian(belief)
+        if not (np.all(np.isfinite(g.mean)) and np.all(np.isfinite(g.cov))):
+            raise ProtocolError("filter produced a non-finite belief; input rejected")
+        self._belief, self.t = belief, t
+        self.steps += 1
+        ms = (time.perf_counter() - t0) * 1e3
+        self._timings.append(ms)
+        return encode_belief(
+            self.blimp,
+            seq,
+            t,
+            g.mean,
+            g.cov,
+            self.filter_name,
+            self.model_name,
+            info.nis,
+            info.dof,
+            info.diverged,
+            ms,
+        )
+
+    def _prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
+        """Decode and check a ``step`` input: the parsed step, ``z`` and ``valid``."""
+        s = parse_step(decode(payload), self._sizes, self.settings.system.control_dim)
+        if self.t is not None and s.t <= self.t:
+            self.late += 1
+            raise ProtocolError(f"field 't': step time {s.t} is not after the session time {self.t}")
+        z, valid = self.settings.system.frames(s.frames)
+        return s, z, valid
+
+    def _step(self, payload: bytes) -> bytes:
+        t0 = time.perf_counter()
+        s, z, valid = self._prepare_step(payload)
+        belief, info = self._update(self._predict(self._belief, s.u), z, valid)
+        return self._commit(belief, info, s.seq, s.t, t0)
+
+    def _camera(self, c) -> bytes:
+        t0 = time.perf_counter()
+        self._check_time(c.t)
+        belief = self._belief
+        dt = self.settings.system.dt
+        n = 0 if self.t is None else round((c.t - self.t) / dt)
+        for i in range(n):  # predict to the frame's time with the controls then in force
+            belief = self._predict(belief, self._control_at(self.t + i * dt))
+        z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
+        belief, info = self._update(belief, z, valid)
+        return self._commit(belief, info, c.seq, c.t, t0)
+
+    def _control_at(self, t: float) -> np.ndarray:
+        """The latest control at or before ``t``; older ones are forgotten."""
+        past = [c for c in self._controls if c[0] <= t + 1e-9]
+        self._controls = past[-1:] + [c for c in self._controls if c[0] > t + 1e-9]
+        return past[-1][1] if past else np.zeros(self.settings.system.control_dim)
+
+    def _reset(self, r) -> bytes:
+        if r.filter or r.model:
+            self.filter_name, self.model_name = (
+                r.filter or self.filter_name,
+                r.model or self.model_name,
+            )
+            self._filter = self.make_filter(self.filter_name, self.model_name)
+        self._install(GaussianBelief(r.mean, r.cov), r.seed)
+        self.t, self.steps, self._controls = r.t, 0, []
+        g = self._filter.gaussian(self._belief)
+        return encode_belief(
+            self.blimp,
+            r.seq,
+            r.t,
+            g.mean,
+            g.cov,
+            self.filter_name,
+            self.model_name,
+            math.nan,
+            0,
+            False,
+            0.0,
+        )
+
+    def _status(self) -> bytes:
+        ms = np.array(self._timings) if self._timings else np.zeros(1)
+        return encode(
+            {
+                "v": PROTOCOL_VERSION,
+                "blimp": self.blimp,
+                "filter": self.filter_name,
+                "model": self.model_name,
+                "model_version": self.model_version,
+                "steps": self.steps,
+                "rejected": self.rejected,
+                "late": self.late,
+                "batched": self.batched,
+                "t": self.t,
+                "queue": len(self._pending),
+                "timings": {
+                    "count": len(self._timings),
+                    "step_ms_p50": float(np.median(ms)),
+                    "step_ms_p99": float(np.percentile(ms, 99)),
+                },
+            }
+        )
+
+
+def step_together(batch: list[tuple[Session, tuple]]) -> None:
+    """Run one lock-step ``step`` job of each session in one batched filter call.
+
+    Inputs that fail validation are rejected one by one, exactly as unbatched; if the
+    batched call itself fails, every job runs on its own.
+    """
+    t0 = time.perf_counter()
+    ready = []
+    for s, job in batch:
+        try:
+            ready.append((s, job, s._prepare_step(job[1])))
+        except ProtocolError as exc:
+            s._reject(str(exc), job[0], job[2])
+            s._close_job(job)
+    try:
+        if ready:
+            results = ready[0][0]._filter.step_many(
+                [s._belief for s, _, _ in ready],
+                np.stack([p[0].u for _, _, p in ready]),
+                np.stack([p[1] for _, _, p in ready]),
+                np.stack([p[2] for _, _, p in ready]),
+            )
+    except Exception:  # fall back: each job alone, with its own error handling
+        for s, job, _ in ready:
+            s._answer(job, lambda s=s, job=job: s._handle(job[0], job[1], job[3]))
+            s._close_job(job)
+        return
+    for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
+        s.batched += len(ready) > 1
+        s._answer(
+            job,
+            lambda s=s, step=step, belief=belief, info=info: s._commit(belief, info, step.seq, step.t, t0),
+        )
+        s._close_job(job)

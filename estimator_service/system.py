@@ -1,0 +1,312 @@
+"""What the estimator knows of a robot: its state, controls, sensors and step.
+
+A :class:`System` replaces every robot constant in the estimator: the state dimension
+and which components are angles, the control dimension, each sensor's observation layout
+(with its angle outputs and rate), the filter step ``dt``, the groups a tracking run is
+scored by and the prior a new service session starts from. It travels as JSON: inside
+every flight file (``metadata["system"]``) and in every model folder (``system.json``),
+so training, tracking, calibration and the service read it from the data instead of
+assuming a blimp.
+
+The paper's blimp is one description (:func:`estimator_service.models.blimp.blimp_system`);
+``docs/your-robot.md`` writes another.
+
+Observations of all sensors are concatenated into one vector ``z (m,)`` in sensor order;
+a sensor delivers all its outputs or none at a step, so validity is kept per sensor
+``(S,)`` in logs and expanded to per output ``(m,)`` for the filters
+(:meth:`System.expand_valid`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator_service.filters.common import Wrapping
+
+__all__ = ["Group", "Sensor", "System", "SystemError", "wrap_angle"]
+
+FloatArray = NDArray[np.float64]
+SYSTEM_FORMAT = "gpbf-system"
+SYSTEM_VERSION = 1
+
+
+class SystemError(ValueError):
+    """A system description is malformed, or data does not fit it."""
+
+
+def wrap_angle(a: FloatArray, period: float | FloatArray = 2 * math.pi) -> FloatArray:
+    """Angles wrapped to ``[-period/2, period/2)`` (``period`` broadcasts against ``a``)."""
+    return (np.asarray(a) + np.asarray(period) / 2) % period - np.asarray(period) / 2
+
+
+def _wrap_columns(e: FloatArray, periods: FloatArray) -> FloatArray:
+    """``e (..., n)`` with the columns of non-zero period wrapped in place; returns ``e``."""
+    ang = np.flatnonzero(periods > 0)
+    if ang.size:
+        e[..., ang] = wrap_angle(e[..., ang], periods[ang])
+    return e
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """One sensor's observation layout.
+
+    Attributes
+    ----------
+    name
+        Unique among the system's sensors (letters, digits, ``_`` and ``-``).
+    outputs
+        Names of the values it reports at once, e.g. ``("cx", "cy", "w", "h", "angle")``.
+    periods
+        Per output, the period of an angle output (e.g. ``pi`` for an ellipse orientation)
+        or 0; empty means no angles.
+    rate_hz
+        Nominal frame rate (informational; frames arrive whenever they arrive).
+    """
+
+    name: str
+    outputs: tuple[str, ...]
+    periods: tuple[float, ...] = ()
+    rate_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "outputs", tuple(str(o) for o in self.outputs))
+        periods = tuple(float(p) for p in self.periods) or (0.0,) * len(self.outputs)
+        object.__setattr__(self, "periods", periods)
+        if not self.name or not all(c.isascii() and (c.isalnum() or c in "_-") for c in self.name):
+            raise SystemError(f"sensor name {self.name!r}: use letters, digits, '_' and '-'")
+        if not self.outputs:
+            raise SystemError(f"sensor {self.name!r}: 'outputs' is empty")
+        if len(periods) != len(self.outputs) or any(not (p >= 0 and math.isfinite(p)) for p in periods):
+            raise SystemError(f"sensor {self.name!r}: 'periods' needs one finite value >= 0 per output")
+        if self.rate_hz is not None and not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise SystemError(f"sensor {self.name!r}: 'rate_hz' must be > 0, got {self.rate_hz}")
+
+    @property
+    def size(self) -> int:
+        return len(self.outputs)
+
+
+@dataclass(frozen=True)
+class Group:
+    """State components scored together, in display units: ``error * factor`` (e.g. 1000 for
+    metres shown in mm)."""
+
+    name: str
+    indices: tuple[int, ...]
+    factor: float = 1.0
+
+
+@dataclass(frozen=True)
+class System:
+    """A robot as the estimator sees it (see the module docstring).
+
+    Attributes
+    ----------
+    name
+        E.g. ``"blimp"``.
+    state, controls
+        Component names ``(n,)`` and ``(k,)``.
+    sensors
+        Observation layout, in the order of ``z``.
+    dt
+        Filter step (s): one prediction per ``dt``.
+    state_periods
+        Per state component, the period of an angle (``2 pi``) or 0; empty: no angles.
+    circle_inputs
+        State angles a GP sees as ``(cos, sin)`` (they wrap in use); default: every angle.
+        The blimp lists only the yaw (roll and pitch stay small).
+    groups
+        Scoring groups; default one per state component.
+    prior_mean, prior_std
+        Where a service session starts before a reset (default 0 and 1).
+    parametric
+        Name of the parametric model family this robot has (``"blimp"``) or None; the
+        ``param``, ``egp`` and ``hetgp`` model kinds need one.
+    """
+
+    name: str
+    state: tuple[str, ...]
+    controls: tuple[str, ...]
+    sensors: tuple[Sensor, ...]
+    dt: float
+    state_periods: tuple[float, ...] = ()
+    circle_inputs: tuple[int, ...] | None = None
+    groups: tuple[Group, ...] = ()
+    prior_mean: tuple[float, ...] = ()
+    prior_std: tuple[float, ...] = ()
+    parametric: str | None = None
+    _slices: tuple[slice, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        fix = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        fix("state", tuple(str(s) for s in self.state))
+        fix("controls", tuple(str(c) for c in self.controls))
+        fix("sensors", tuple(self.sensors))
+        n = len(self.state)
+        fix("state_periods", tuple(float(p) for p in self.state_periods) or (0.0,) * n)
+        if self.circle_inputs is None:
+            fix("circle_inputs", tuple(i for i, p in enumerate(self.state_periods) if p > 0))
+        fix("circle_inputs", tuple(int(i) for i in self.circle_inputs))
+        fix("groups", tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
+        fix("prior_mean", tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
+        fix("prior_std", tuple(float(v) for v in self.prior_std) or (1.0,) * n)
+        self._check()
+        starts = np.cumsum([0, *(s.size for s in self.sensors)])
+        fix("_slices", tuple(slice(int(a), int(b)) for a, b in itertools.pairwise(starts)))
+
+    def _check(self) -> None:
+        n, where = len(self.state), f"system {self.name!r}"
+        if n == 0 or not self.controls or not self.sensors:
+            raise SystemError(f"{where}: 'state', 'controls' and 'sensors' must be non-empty")
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            raise SystemError(f"{where}: 'dt' must be a finite time > 0, got {self.dt}")
+        if len({s.name for s in self.sensors}) != len(self.sensors):
+            raise SystemError(f"{where}: sensor names must be unique")
+        for key in ("state_periods", "prior_mean", "prior_std"):
+            vals = getattr(self, key)
+            if len(vals) != n or not all(math.isfinite(v) for v in vals):
+                raise SystemError(f"{where}: '{key}' needs {n} finite values, got {len(vals)}")
+        if any(p < 0 for p in self.state_periods) or any(s <= 0 for s in self.prior_std):
+            raise SystemError(f"{where}: 'state_periods' must be >= 0 and 'prior_std' > 0")
+        if any(not 0 <= i < n or self.state_periods[i] <= 0 for i in self.circle_inputs or ()):
+            raise SystemError(f"{where}: 'circle_inputs' must index angle components of the state")
+        for g in self.groups:
+            if not g.indices or any(not 0 <= i < n for i in g.indices):
+                raise SystemError(f"{where}: group {g.name!r} indexes outside the state")
+
+    # -- sizes and layout ---------------------------------------------------------------------------
+    @property
+    def state_dim(self) -> int:
+        return len(self.state)
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.controls)
+
+    @property
+    def obs_dim(self) -> int:
+        return sum(s.size for s in self.sensors)
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.sensors)
+
+    def sensor_slice(self, k: int) -> slice:
+        """Where sensor ``k``'s outputs sit in ``z``."""
+        return self._slices[k]
+
+    @property
+    def obs_periods(self) -> FloatArray:
+        """Period of each observation output ``(m,)`` (0: not an angle)."""
+        return np.array([p for s in self.sensors for p in s.periods])
+
+    @property
+    def sensor_sizes(self) -> NDArray[np.intp]:
+        return np.array([s.size for s in self.sensors])
+
+    # -- the one rule from sensor frames to the filters' (z, valid) ------------------------------
+    def expand_valid(self, valid: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Per-sensor validity ``(..., S)`` -> per-output ``(..., m)``."""
+        return np.repeat(np.asarray(valid, dtype=bool), self.sensor_sizes, axis=-1)
+
+    def frames(self, readings: Mapping[int, Sequence[float]]) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """``{sensor index: values}`` -> ``z (m,)`` (0 where missing) and ``valid (m,)``."""
+        z, valid = np.zeros(self.obs_dim), np.zeros(self.obs_dim, dtype=bool)
+        for k, values in readings.items():
+            sl = self.sensor_slice(k)
+            z[sl], valid[sl] = values, True
+        return z, valid
+
+    def state_error(self, estimate: FloatArray, truth: FloatArray) -> FloatArray:
+        """``estimate - truth`` ``(..., n)`` with angle errors wrapped to ``[-p/2, p/2)``."""
+        e = np.array(np.asarray(estimate) - np.asarray(truth), dtype=np.float64)
+        return _wrap_columns(e, np.asarray(self.state_periods))
+
+    def obs_error(self, z: FloatArray, mean: FloatArray) -> FloatArray:
+        """``z - mean`` ``(..., m)`` with angle outputs wrapped to ``[-p/2, p/2)``."""
+        e = np.array(np.asarray(z) - np.asarray(mean), dtype=np.float64)
+        return _wrap_columns(e, self.obs_periods)
+
+    def wrapping(self) -> Wrapping:
+        """The filters' view of the angles (state and observation periods)."""
+        return Wrapping(np.asarray(self.state_periods), self.obs_periods)
+
+    # -- JSON ------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": SYSTEM_FORMAT,
+            "version": SYSTEM_VERSION,
+            "name": self.name,
+            "state": list(self.state),
+            "controls": list(self.controls),
+            "sensors": [
+                {"name": s.name, "outputs": list(s.outputs), "periods": list(s.periods), "rate_hz": s.rate_hz}
+                for s in self.sensors
+            ],
+            "dt": self.dt,
+            "state_periods": list(self.state_periods),
+            "circle_inputs": list(self.circle_inputs or ()),
+            "groups": [{"name": g.name, "indices": list(g.indices), "factor": g.factor} for g in self.groups],
+            "prior_mean": list(self.prior_mean),
+            "prior_std": list(self.prior_std),
+            "parametric": self.parametric,
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "system description") -> System:
+        """Read :meth:`to_dict`'s output; :class:`SystemError` names the field at fault."""
+        if not isinstance(d, Mapping):
+            raise SystemError(f"{where}: expected a JSON object")
+        if (
+            d.get("format", SYSTEM_FORMAT) != SYSTEM_FORMAT
+            or d.get("version", SYSTEM_VERSION) != SYSTEM_VERSION
+        ):
+            raise SystemError(f"{where}: not a version-{SYSTEM_VERSION} {SYSTEM_FORMAT} description")
+        missing = [k for k in ("name", "state", "controls", "sensors", "dt") if k not in d]
+        if missing:
+            raise SystemError(f"{where}: missing field(s) {missing}")
+        try:
+            sensors = tuple(
+                Sensor(s["name"], tuple(s["outputs"]), tuple(s.get("periods") or ()), s.get("rate_hz"))
+                for s in d["sensors"]
+            )
+            groups = tuple(
+                Group(g["name"], tuple(int(i) for i in g["indices"]), float(g.get("factor", 1.0)))
+                for g in d.get("groups") or ()
+            )
+            circle = d.get("circle_inputs")
+            return cls(
+                str(d["name"]), tuple(d["state"]), tuple(d["controls"]), sensors, float(d["dt"]),
+                tuple(d.get("state_periods") or ()), None if circle is None else tuple(circle), groups,
+                tuple(d.get("prior_mean") or ()), tuple(d.get("prior_std") or ()), d.get("parametric"),
+            )  # fmt: skip
+        except SystemError as exc:
+            raise SystemError(f"{where}: {exc}") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SystemError(f"{where}: malformed ({type(exc).__name__}: {exc})") from None
+
+    @classmethod
+    def from_json(cls, text: str, where: str = "system description") -> System:
+        try:
+            return cls.from_dict(json.loads(text), where)
+        except json.JSONDecodeError as exc:
+            raise SystemError(f"{where}: not JSON ({exc})") from None
+
+    def __repr__(self) -> str:
+        sensors = ", ".join(f"{s.name}({s.size})" for s in self.sensors)
+        return (
+            f"System({self.name!r}, state={self.state_dim}, controls={self.control_dim}, "
+            f"sensors=[{sensors}], dt={self.dt})"
+        )

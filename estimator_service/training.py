@@ -1,0 +1,251 @@
+"""Train every model kind from recorded flights and save them as the factory expects.
+
+Prediction data (paper eq. 12): ``[x_k, u_k] -> x_{k+1} - x_k`` (angle changes wrapped).
+Observation data (eq. 13), one model per sensor: ``x_k -> z_k`` over the readings that
+sensor delivered. Both are subsampled to ``n_points`` (paper: ~900).
+
+The ``param`` kind is the system's parametric model family (the blimp's ODE and camera
+model); the ``egp`` and ``hetgp`` kinds model its residual (eq. 16), so a system without
+one trains ``gp`` and ``sparse`` only. Every GP sees the state angles listed in the
+system's ``circle_inputs`` as ``(cos, sin)`` (the blimp: the yaw, which wraps at +-pi), and
+the observation GPs other than the enhanced ones regress a sensor's angle output (the
+ellipse orientation, period pi) as a unit vector: see :mod:`estimator_service.gp.circular`.
+The folder is written through :mod:`estimator_service.store`: whole or not at all.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from estimator_service.calibrate import (
+    calibrate_noise,
+    calibrate_observation,
+    calibration_rows,
+    without_frames,
+)
+from estimator_service.factory import ENHANCED_KINDS, MODEL_KINDS, PARAMETRIC_FILE
+from estimator_service.flight import Flight
+from estimator_service.gp import (
+    Progress,
+    fit_circular,
+    fit_enhanced,
+    fit_exact,
+    fit_hetero,
+    fit_sparse,
+    save_gp,
+)
+from estimator_service.store import writing
+from estimator_service.system import System
+
+__all__ = ["TrainSettings", "available_kinds", "prediction_data", "train_models"]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """How hard to train.
+
+    Attributes
+    ----------
+    n_points
+        Training points per GP after subsampling (paper: ~900).
+    n_pseudo
+        Pseudo-inputs of the sparse GPs (paper: 50).
+    restarts, max_iter
+        Hyperparameter optimisation effort of the exact GPs.
+    hetero_iterations
+        EM-like rounds of the heteroscedastic GPs.
+    sparse_iter
+        Optimiser iterations of the sparse GPs (hyperparameters and ``n_pseudo * d``
+        pseudo-input coordinates). More is not better here: on a held-out blimp block the
+        sparse GP-EKF scored aggregate RMS 14.6, 12.3, 13.2 and 13.3 after 60, 120, 200
+        and 500 iterations while the marginal likelihood kept improving.
+    calibration_seconds
+        Length of the training-flight stretch on which each kind's noise is calibrated (0
+        skips calibration): its frames (at most a quarter of the flight) are kept out of
+        every observation model and set the observation-noise scales
+        (:func:`calibrate_observation`), then the process-noise scale is chosen on it
+        (:func:`calibrate_noise`).
+    hyper_points, polish_iter
+        Exact and heteroscedastic GPs learn hyperparameters on a random subset of
+        ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
+        (None: all points from the start); see :func:`~estimator_service.gp.fit_exact`.
+    """
+
+    n_points: int = 900
+    n_pseudo: int = 50
+    restarts: int = 2
+    max_iter: int = 100
+    hetero_iterations: int = 2
+    sparse_iter: int = 120
+    hyper_points: int | None = 300
+    polish_iter: int = 15
+    calibration_seconds: float = 60.0
+
+
+def prediction_data(flights: Sequence[Flight]) -> tuple[FloatArray, FloatArray]:
+    """Inputs ``[x, u] (T, n + k)`` and targets ``x' - x (T, n)`` from all transitions."""
+    xs, us, xn = zip(*(f.transitions() for f in flights), strict=True)
+    x, u, x_next = np.concatenate(xs), np.concatenate(us), np.concatenate(xn)
+    return np.concatenate([x, u], axis=1), flights[0].system.state_error(x_next, x)
+
+
+def observation_data(flights: Sequence[Flight], sensor: int) -> tuple[FloatArray, FloatArray]:
+    """States ``(T, n)`` and readings ``(T, size)`` where ``sensor`` delivered one."""
+    xs, zs = zip(*(f.readings(sensor) for f in flights), strict=True)
+    return np.concatenate(xs), np.concatenate(zs)
+
+
+def available_kinds(system: System) -> tuple[str, ...]:
+    """The model kinds a system can train: all five with a parametric model family, else
+    ``gp`` and ``sparse``."""
+    if system.parametric is not None:
+        return MODEL_KINDS
+    return tuple(k for k in MODEL_KINDS if k != "param" and k not in ENHANCED_KINDS)
+
+
+def _check_flights(flights: Sequence[Flight], kinds: Sequence[str]) -> System:
+    if not flights:
+        raise ValueError("no flights to train on")
+    system = flights[0].system
+    for i, f in enumerate(flights[1:], 1):
+        if f.system != system:
+            raise ValueError(f"flight {i} describes another system than flight 0 ({f.system} vs {system})")
+    unknown = set(kinds) - set(MODEL_KINDS)
+    if unknown:
+        raise ValueError(f"unknown model kinds {sorted(unknown)}; choose from {MODEL_KINDS}")
+    unavailable = set(kinds) - set(available_kinds(system))
+    if unavailable:
+        raise ValueError(
+            f"model kinds {sorted(unavailable)} need a parametric model, which system {system.name!r} "
+            f"has not; choose from {available_kinds(system)}"
+        )
+    if any(sum(p > 0 for p in s.periods) > 1 for s in system.sensors):
+        raise ValueError("a sensor may have at most one angle output")
+    if sum(len(f.transition_rows()) for f in flights) < 2:
+        raise ValueError("the flights hold fewer than 2 transitions: record longer")
+    return system
+
+
+def _subsample(n: int, k: int, rng: np.random.Generator) -> NDArray[np.intp]:
+    return np.sort(rng.choice(n, size=min(n, k), replace=False))
+
+
+def _fitter(kind: str, s: TrainSettings, rng: np.random.Generator, cb) -> Callable:
+    common = {"rng": rng, "callback": cb}
+    exact = {"max_iter": s.max_iter, "hyper_points": s.hyper_points, "polish_iter": s.polish_iter}
+    if kind in ("gp", "egp"):
+        return lambda x, y: fit_exact(x, y, restarts=s.restarts, **exact, **common)
+    if kind == "hetgp":
+        return lambda x, y: fit_hetero(x, y, iterations=s.hetero_iterations, restarts=1, **exact, **common)
+    return lambda x, y: fit_sparse(x, y, n_pseudo=min(s.n_pseudo, len(x)), max_iter=s.sparse_iter, **common)
+
+
+def train_models(
+    flights: Sequence[Flight],
+    out_dir: str | Path,
+    *,
+    kinds: Sequence[str] | None = None,
+    settings: TrainSettings = TrainSettings(),
+    seed: int = 0,
+    on_progress: Callable[[str, Progress | None], None] | None = None,
+    exclude: Callable[[FloatArray], NDArray[np.bool_]] | None = None,
+) -> dict[str, float]:
+    """Fit and save the requested model kinds (default: all the flights' system can train,
+    :func:`available_kinds`); returns training seconds per kind.
+
+    ``exclude(inputs) -> mask`` drops prediction training rows (e.g. tail pushing left,
+    paper Fig. 4). ``on_progress(label, progress)`` reports optimiser iterations.
+    Randomness: the training subsets come from one stream of ``seed`` and each kind's
+    optimiser from its own, so a kind's models do not depend on which other kinds are
+    trained beside it. ``out_dir`` is replaced whole when training succeeds and left as it
+    was when it fails.
+    """
+    kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds
+    system = _check_flights(flights, kinds or ())
+    with writing(out_dir, system) as out:
+        return _train_into(out, flights, system, kinds, settings, seed, on_progress, exclude)
+
+
+def _train_into(out: Path, flights, system: System, kinds, settings: TrainSettings, seed: int,
+                on_progress, exclude) -> dict[str, float]:  # fmt: skip
+    rng = np.random.default_rng([seed, 0])
+    timings: dict[str, float] = {}
+    n = system.state_dim
+    held_out = calibration_rows(flights[0], settings.calibration_seconds)
+    framed = [without_frames(flights[0], held_out), *flights[1:]]  # for the observation models
+    param = None
+    if system.parametric is not None and any(k == "param" or k in ENHANCED_KINDS for k in kinds):
+        from estimator_service.blimp import fit_parametric, save_parametric
+
+        t0 = time.perf_counter()
+        inp_f, change_f = prediction_data(framed)
+        x = inp_f[:, :n]
+        param = fit_parametric(framed, x, inp_f[:, n:], x + change_f)
+        save_parametric(*param, out / PARAMETRIC_FILE)
+        timings["param"] = time.perf_counter() - t0
+    inp, change = prediction_data(flights)
+    if exclude is not None:
+        keep = ~exclude(inp)
+        inp, change = inp[keep], change[keep]
+    rows = _subsample(len(inp), settings.n_points, rng)
+    obs_sets = []
+    for k in range(system.n_sensors):
+        xs, zs = observation_data(framed, k)
+        sel = _subsample(len(xs), settings.n_points, rng)
+        obs_sets.append((xs[sel], zs[sel]))
+    angles = tuple(system.circle_inputs or ())
+    for kind in (k for k in kinds if k != "param"):
+        t0 = time.perf_counter()
+
+        def cb(p: Progress, kind: str = kind) -> None:
+            if on_progress:
+                on_progress(kind, p)
+
+        kind_rng = np.random.default_rng([seed, 1 + MODEL_KINDS.index(kind)])
+        base = _fitter(kind, settings, kind_rng, cb)
+
+        def fit(x: FloatArray, y: FloatArray, base: Callable = base) -> object:
+            return fit_circular(x, y, base, angle_inputs=angles)
+
+        x, y = inp[rows], change[rows]
+        if kind in ENHANCED_KINDS:
+            pred = fit_enhanced(x, y, lambda q, ode=param[0]: ode.change(q[:, :n], q[:, n:]), fit)
+        else:
+            pred = fit(x, y)
+        save_gp(pred, out / f"prediction_{kind}.npz")
+        for k, (xs, zs) in enumerate(obs_sets):
+            if kind in ENHANCED_KINDS:
+                sl = system.sensor_slice(k)
+                obs = fit_enhanced(xs, zs, lambda q, sl=sl: param[1].mean(q)[:, sl], fit)
+            else:
+                obs = _fit_sensor(xs, zs, base, angles, system.sensors[k].periods)
+            save_gp(obs, out / f"observation_{kind}_cam{k}.npz")
+        timings[kind] = time.perf_counter() - t0
+        if on_progress:
+            on_progress(kind, None)
+    if settings.calibration_seconds > 0:
+        t0 = time.perf_counter()
+        from estimator_service.store import seal
+
+        seal(out, system)  # calibration reads the models through the system description
+        calibrate_observation(flights[0], out, kinds, rows=held_out)
+        calibrate_noise(flights[0], out, kinds, seconds=settings.calibration_seconds)
+        timings["calibration"] = time.perf_counter() - t0
+    return timings
+
+
+def _fit_sensor(xs: FloatArray, zs: FloatArray, base: Callable, angles: tuple[int, ...],
+                periods: tuple[float, ...]) -> object:  # fmt: skip
+    """A sensor's observation GP; its angle output (if any) regressed as a unit vector."""
+    ang = [i for i, p in enumerate(periods) if p > 0]
+    if not ang:
+        return fit_circular(xs, zs, base, angle_inputs=angles)
+    return fit_circular(xs, zs, base, angle_inputs=angles, angle_output=ang[0], period=periods[ang[0]])

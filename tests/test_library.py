@@ -1,0 +1,149 @@
+"""The estimator as a library: system descriptions, logs, the model store, atomic files,
+short reprs, and one filter interface."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import stat
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator_service.blimp import blimp_system
+from estimator_service.files import atomic_write_text, remove_stale_temps
+from estimator_service.filters import EKF, PF, UKF, GaussianBelief
+from estimator_service.flight import FlightError, load_csv, load_log, make_flight, save_flight
+from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+from estimator_service.store import ModelStoreError, check_folder, model_version, seal, writing
+from estimator_service.system import System, SystemError
+from tests.robot_log import SYSTEM, write_robot_log
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_system_round_trips_and_errors_name_the_field() -> None:
+    s = System.from_dict(SYSTEM)
+    assert System.from_json(s.to_json()) == s
+    assert s.obs_dim == 3 and s.sensor_slice(1) == slice(2, 3) and s.circle_inputs == (2,)
+    z, valid = s.frames({1: [0.5]})
+    assert valid.tolist() == [False, False, True] and z[2] == 0.5
+    np.testing.assert_allclose(s.state_error(np.array([0, 0, 3.1, 0, 0]), np.array([0, 0, -3.1, 0, 0]))[2],
+                               6.2 - 2 * math.pi)  # fmt: skip
+    for bad, field in ((dict(SYSTEM, dt=0), "dt"), (dict(SYSTEM, state_periods=[0, 1]), "state_periods"),
+                       ({k: v for k, v in SYSTEM.items() if k != "sensors"}, "sensors")):  # fmt: skip
+        with pytest.raises(SystemError, match=field):
+            System.from_dict(bad)
+    assert "Cholesky" not in repr(s) and len(repr(s)) < 200
+
+
+def test_blimp_description_matches_the_filters_angle_handling() -> None:
+    w = blimp_system(2).wrapping()
+    assert w.state.tolist() == [0] * 3 + [2 * math.pi] * 3 + [0] * 6
+    assert w.obs.tolist() == [0, 0, 0, 0, math.pi] * 2
+
+
+def test_csv_log_reads_and_mistakes_are_named(tmp_path: Path) -> None:
+    log, sys_file = write_robot_log(tmp_path, np.random.default_rng(1), rows=50)
+    system = System.from_json(sys_file.read_text())
+    fl = load_csv(log, system)
+    assert len(fl) == 50 and fl.valid[:, 0].sum() == 5 and fl.valid[:, 1].all()
+    back = load_log(save_flight(fl, tmp_path / "f.npz"))
+    np.testing.assert_array_equal(back.z, fl.z)
+    text = log.read_text().splitlines()
+    (tmp_path / "bad.csv").write_text("\n".join([text[0], text[1].replace(",", ",x", 1), *text[2:]]))
+    with pytest.raises(FlightError, match=r"line 2.*not a number"):
+        load_csv(tmp_path / "bad.csv", system)
+    (tmp_path / "cols.csv").write_text("\n".join(line.rsplit(",", 1)[0] for line in text))
+    with pytest.raises(FlightError, match=r"missing column.*compass\.heading"):
+        load_csv(tmp_path / "cols.csv", system)
+    with pytest.raises(FlightError, match="--system"):
+        load_log(log)
+
+
+def test_written_files_follow_the_umask_and_failed_writes_leave_nothing(tmp_path: Path) -> None:
+    old = os.umask(0o027)
+    try:
+        p = atomic_write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o640
+
+    def boom(fh):
+        fh.write(b"partial")
+        raise RuntimeError("disk on fire")
+
+    from estimator_service.files import atomic_write
+
+    with pytest.raises(RuntimeError):
+        atomic_write(tmp_path / "b.bin", boom)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["a.txt"]
+    (tmp_path / ".gpbf-killed.tmp").write_bytes(b"left by SIGKILL")
+    assert remove_stale_temps(tmp_path) == 1
+
+
+def test_model_folder_is_replaced_whole_or_not_at_all(tmp_path: Path) -> None:
+    system = blimp_system(1)
+    out = tmp_path / "models"
+    with writing(out, system) as stage:
+        (stage / "prediction_gp.npz").write_bytes(b"old")
+    v1 = model_version(out)
+    with pytest.raises(RuntimeError), writing(out, system) as stage:
+        (stage / "prediction_gp.npz").write_bytes(b"new, half written")
+        raise RuntimeError("killed mid-train")
+    assert (out / "prediction_gp.npz").read_bytes() == b"old" and model_version(out) == v1
+    assert [p.name for p in tmp_path.iterdir()] == ["models"]  # no staging folder left
+    (out / "prediction_egp.npz").write_bytes(b"stray")  # a mixed folder
+    with pytest.raises(ModelStoreError, match="not in the manifest"):
+        check_folder(out)
+    (out / "prediction_egp.npz").unlink()
+    (out / "prediction_gp.npz").write_bytes(b"changed")
+    with pytest.raises(ModelStoreError, match="differs"):
+        check_folder(out)
+    seal(out, system)
+    assert model_version(out) != v1
+    assert json.loads((out / "system.json").read_text())["name"] == "blimp"
+
+
+def _linear_filters():
+    pred = LinearGaussianPrediction(np.eye(2), np.ones((2, 1)), np.full(2, 0.01))
+    obs = LinearGaussianObservation(np.eye(2), np.full(2, 0.1))
+    return EKF(pred, obs), UKF(pred, obs), PF(pred, obs, n_particles=400)
+
+
+@pytest.mark.parametrize("filt", _linear_filters(), ids=["EKF", "UKF", "PF"])
+def test_one_filter_interface(filt) -> None:
+    rng = np.random.default_rng(0)
+    belief = filt.initial(GaussianBelief(np.zeros(2), np.eye(2)), rng)
+    for _ in range(5):
+        belief, _ = filt.step(belief, np.array([0.1]), np.array([0.5, 0.5]), np.array([True, True]), rng)
+    g = filt.gaussian(belief)
+    assert isinstance(g, GaussianBelief) and np.all(np.abs(g.mean - 0.5) < 0.3)
+    assert len(repr(filt)) < 400 and len(repr(belief)) < 400
+
+
+def test_pf_without_rng_is_a_clear_error() -> None:
+    pf = _linear_filters()[2]
+    with pytest.raises(TypeError, match="rng"):
+        pf.initial(GaussianBelief(np.zeros(2), np.eye(2)))
+
+
+def test_no_caller_branches_on_the_filter_type() -> None:
+    pattern = re.compile(r"isinstance\([^)]*\b(PF|EKF|UKF)\b")
+    hits = [
+        f"{p.relative_to(ROOT)}:{i}"
+        for pkg in ("agents", "estimator_service")
+        for p in (ROOT / pkg).rglob("*.py")
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert not hits, hits
+
+
+def test_make_flight_checks_shapes() -> None:
+    s = System.from_dict(SYSTEM)
+    with pytest.raises(FlightError, match="'state' has shape"):
+        make_flight(s, np.arange(3.0), np.zeros((3, 4)), np.zeros((3, 2)), np.zeros((3, 3)), np.ones((3, 2)))
