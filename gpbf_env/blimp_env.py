@@ -43,17 +43,27 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     ``Dict(ellipses=Box((C, 5), float32), valid=MultiBinary(C))`` for ``C`` cameras: per
     camera ``(cx, cy, width, height, angle)`` in pixels and radians (major axis angle in
     ``(-pi/2, pi/2]``) and whether a frame arrived this step. Rows without a frame
-    (no frame due, out of view, behind the camera) are zero with ``valid = 0``.
-    ``info["state"]`` is the true 12-D state ``(x, y, z, roll, pitch, yaw, u, v, w, p, q,
-    r)`` (world m, rad, body m/s, body rad/s; the motion-capture ground truth),
-    ``info["t"]`` the sim time (s), ``info["frames"]`` the cameras that were due.
+    (no frame due, out of view, behind the camera) are zero with ``valid = 0``;
+    :meth:`~gpbf_env.core.WorldConfig.frame_schedule` gives the cameras due at each step.
+
+    ## Info
+    ``reset`` and ``step`` both return ``info["state"]``, the true 12-D state ``(x, y, z,
+    roll, pitch, yaw, u, v, w, p, q, r)`` (world m, rad, body m/s, body rad/s; the
+    motion-capture ground truth), ``info["t"]``, the sim time (s), ``info["goal"]``, the
+    current goal ``(x, y, z, yaw)``, ``info["waypoint_index"]``, its index among the
+    episode's goals, and ``info["motors"]``, the lagged fan outputs (N, rad, N). ``step``
+    adds the reward components ``info["reward_alive" | "reward_distance" |
+    "reward_heading" | "reward_control"]``, ``info["distance_m"]``, the distance to the goal
+    (m), ``info["success"]``, whether it is within ``reach_radius`` of the goal, and
+    ``info["crashed"]``. :class:`~gpbf_env.vector_env.BlimpVectorEnv` returns the same
+    keys batched as the ``"sync"`` vector env does, with their ``"_key"`` masks.
 
     ## Rewards
-    Dense: ``1 - distance - 0.3 |heading error| - 0.05 |a|^2`` per step (components in
-    ``info["reward_alive" | "reward_distance" | "reward_heading" | "reward_control"]``; the
-    +1 for staying airborne makes crashing early never pay). Hover: distance to
-    the goal and error to the goal yaw. Waypoint: distance to the current waypoint and
-    heading error to its direction, +10 on reaching a waypoint. -20 on a crash.
+    Dense: ``1 - distance - 0.3 |heading error| - 0.05 |a|^2`` per step (components in the
+    ``reward_*`` info entries; the +1 for staying airborne makes crashing early never
+    pay). Hover: distance to the goal and error to the goal yaw. Waypoint: distance to the
+    current waypoint and heading error to its direction, +10 on reaching a waypoint. -20
+    on a crash.
 
     ## Starting State
     At rest, motors off, roll and pitch ~N(0, 0.05) rad; goals drawn uniformly in the room's

@@ -3,7 +3,9 @@
 Blimp ``i`` of ``BlimpVectorEnv(num_envs=N)`` reset with ``seed=s`` reproduces a single
 :class:`~gpbf_env.blimp_env.BlimpEnv` reset with ``seed=s + i`` step for step (same
 random streams, same arithmetic), including across its own autoresets (Gymnasium's
-next-step autoreset).
+next-step autoreset). Its ``info`` has the keys, shapes, dtypes, ``"_key"`` masks and
+values that ``gym.make_vec(..., vectorization_mode="sync")`` builds from the single envs'
+infos, and ``render()`` returns the same frames.
 """
 
 from __future__ import annotations
@@ -35,21 +37,33 @@ class BlimpVectorEnv(VectorEnv):
         Number of blimps.
     max_episode_steps
         Truncation horizon per blimp (``None``: never truncate).
+    render_mode
+        ``"rgb_array"`` (``render()`` returns one frame per blimp) or None.
     **config
         :class:`~gpbf_env.core.WorldConfig` fields, shared by all blimps.
     """
 
     metadata: ClassVar[dict[str, Any]] = {
         "autoreset_mode": AutoresetMode.NEXT_STEP,
-        "render_modes": [],
+        "render_modes": ["rgb_array"],
+        "render_fps": 4,
     }
 
-    def __init__(self, num_envs: int = 1, max_episode_steps: int | None = None, **config: Any):
+    def __init__(
+        self,
+        num_envs: int = 1,
+        max_episode_steps: int | None = None,
+        render_mode: str | None = None,
+        **config: Any,
+    ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        config.pop("render_mode", None)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.num_envs = num_envs
+        self.render_mode = render_mode
         self.config = WorldConfig(**config)
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.config.dt)}
         self.max_episode_steps = max_episode_steps
         self.single_observation_space = self.config.observation_space()
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
@@ -67,10 +81,31 @@ class BlimpVectorEnv(VectorEnv):
         self._goals = np.zeros((n, n_goals, 4))
         self._goal_index = np.zeros(n, dtype=np.int64)
         self._autoreset = np.zeros(n, dtype=bool)
+        # rendering only: last observation and position snapshots (T, N, 3), blimp i's
+        # episode trail being ``_trail[_trail_start[i]:, i]``
+        self._last_obs: dict[str, NDArray[Any]] | None = None
+        self._trail: list[NDArray[np.float64]] = []
+        self._trail_start = np.zeros(n, dtype=np.int64)
 
     def reset(
         self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
+        """Reset every blimp.
+
+        Parameters
+        ----------
+        seed
+            ``s`` seeds blimp ``i`` with ``s + i``; a list gives one seed per blimp.
+        options
+            Not supported (must be empty).
+
+        Returns
+        -------
+        obs
+            Batched observation.
+        info
+            Batched info with ``"_key"`` masks, as the ``"sync"`` vector env returns.
+        """
         if options:
             raise ValueError(f"BlimpVectorEnv.reset takes no options, got {sorted(options)}")
         if seed is not None:
@@ -82,9 +117,31 @@ class BlimpVectorEnv(VectorEnv):
         noise = self._reset_rows(rows)
         self._autoreset[:] = False
         obs = self._observe(rows, noise)
+        if self.render_mode is not None:
+            self._trail = [self._state[:3].T.copy()]
+            self._trail_start[:] = 0
         return obs, self._info(None)
 
-    def step(self, actions: NDArray[np.float32]):
+    def step(
+        self, actions: NDArray[np.float32]
+    ) -> tuple[
+        dict[str, NDArray[Any]], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]
+    ]:
+        """Step every blimp; blimps that ended on the previous step are reset instead.
+
+        Parameters
+        ----------
+        actions: (N, 3)
+            Normalised actions.
+
+        Returns
+        -------
+        obs, reward, terminated, truncated
+            Batched step results (zero reward, not done for the blimps just reset).
+        info
+            Batched info with ``"_key"`` masks; the step-only keys are masked off for the
+            blimps just reset (and absent when all were), as the ``"sync"`` vector env does.
+        """
         n = self.num_envs
         a = check_action(actions, n)
         resetting = np.flatnonzero(self._autoreset)
@@ -124,8 +181,33 @@ class BlimpVectorEnv(VectorEnv):
             reward[resetting] = 0.0
             terminated[resetting] = truncated[resetting] = crashed[resetting] = False
         obs = self._observe(np.arange(n), noise)
+        stepped = ~self._autoreset
         self._autoreset = terminated | truncated
-        return obs, reward, terminated, truncated, self._info(parts, crashed)
+        if self.render_mode is not None:
+            self._record_trail(resetting)
+        return obs, reward, terminated, truncated, self._info(parts, crashed, stepped)
+
+    def render(self) -> tuple[NDArray[np.uint8], ...] | None:
+        """One ``rgb_array`` frame per blimp, as the ``"sync"`` vector env returns.
+
+        Returns
+        -------
+        frames
+            ``N`` (H, W, 3) uint8 images drawn by :func:`~gpbf_env.render.render_scene`,
+            or None when ``render_mode`` is None.
+        """
+        if self.render_mode != "rgb_array":
+            return None
+        from gpbf_env.render import render_scene
+
+        trail = np.stack(self._trail) if self._trail else np.zeros((0, self.num_envs, 3))
+        goals = self._goals[np.arange(self.num_envs), self._goal_index]
+        frames = []
+        for i in range(self.num_envs):  # one image per blimp
+            obs = None if self._last_obs is None else {k: v[i] for k, v in self._last_obs.items()}
+            start = self._trail_start[i]
+            frames.append(render_scene(self.config, self._state[:, i], obs, trail[start:, i], goals[i]))
+        return tuple(frames)
 
     # -- helpers -----------------------------------------------------------------------
     def _rebuild_coeffs(self) -> None:
@@ -160,6 +242,15 @@ class BlimpVectorEnv(VectorEnv):
         self._goal_index[rows] = 0
         return noise
 
+    def _record_trail(self, resetting: NDArray[np.int64]) -> None:
+        """Append the positions to the render trails; blimps ``resetting`` start anew."""
+        self._trail.append(self._state[:3].T.copy())
+        self._trail_start[resetting] = len(self._trail) - 1
+        drop = int(self._trail_start.min())
+        if drop:  # no blimp's episode reaches back this far
+            del self._trail[:drop]
+            self._trail_start -= drop
+
     def _advance_wind(self, rows: NDArray[np.int64], z: NDArray[np.float64]) -> None:
         a, s = self._gust_a[rows], self._gust_s[rows]
         self._wind[:, rows] = a * self._wind[:, rows] + s * z.T
@@ -167,24 +258,57 @@ class BlimpVectorEnv(VectorEnv):
     def _observe(self, rows: NDArray[np.int64], noise: NDArray[np.float64]) -> dict[str, Any]:
         frames = self.config.frame_schedule(self._steps)
         ell, valid = observe(self.config, self._state.T, frames, noise, self._rngs)
+        if self.render_mode is not None:
+            self._last_obs = {"ellipses": ell.copy(), "valid": valid.copy()}
         return {"ellipses": ell, "valid": valid}
 
-    def _info(self, parts: dict[str, Any] | None, crashed: Any = None) -> dict[str, Any]:
+    def _info(
+        self,
+        parts: dict[str, NDArray[Any]] | None,
+        crashed: NDArray[np.bool_] | None = None,
+        stepped: NDArray[np.bool_] | None = None,
+    ) -> dict[str, NDArray[Any]]:
+        """The batched info, laid out as Gymnasium's ``VectorEnv._add_info`` lays it out.
+
+        Parameters
+        ----------
+        parts
+            Reward components of :func:`~gpbf_env.tasks.task_reward` (None on ``reset``).
+        crashed: (N,)
+            Blimps that crashed this step.
+        stepped: (N,)
+            Blimps that stepped (the others were autoreset and have no step-only keys).
+
+        Returns
+        -------
+        info
+            Every key with its ``"_key"`` mask; a step-only key is zero where masked off
+            and absent when no blimp stepped.
+        """
         n = self.num_envs
-        info: dict[str, Any] = {
+        values: dict[str, NDArray[Any]] = {
             "state": self._state.T.copy(),
             "t": self._steps * self.config.dt,
             "goal": self._goals[np.arange(n), self._goal_index].copy(),
             "waypoint_index": self._goal_index.copy(),
+            "motors": np.stack(self._motors, axis=1),
         }
-        if parts is not None:
-            info.update(
-                reward_alive=parts["alive"],
-                reward_distance=parts["distance"],
-                reward_heading=parts["heading"],
-                reward_control=parts["control"],
-                distance_m=parts["distance_m"],
-                success=parts["reached"],
-                crashed=crashed,
-            )
+        info: dict[str, NDArray[Any]] = {}
+        for key, value in values.items():
+            info[key], info[f"_{key}"] = value, np.ones(n, dtype=bool)
+        if parts is None or stepped is None or crashed is None or not stepped.any():
+            return info
+        step_only = {
+            "reward_alive": parts["alive"],
+            "reward_distance": parts["distance"],
+            "reward_heading": parts["heading"],
+            "reward_control": parts["control"],
+            "distance_m": parts["distance_m"],
+            "success": parts["reached"],
+            "crashed": crashed,
+        }
+        for key, value in step_only.items():
+            dtype = np.bool_ if key in ("success", "crashed") else np.float64
+            info[key] = np.where(stepped, np.asarray(value, dtype=dtype), dtype(0))
+            info[f"_{key}"] = stepped.copy()
         return info

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+import re
 import subprocess
 import sys
 import warnings
@@ -232,3 +233,89 @@ def test_rendered_camera_mode_agrees_with_closed_form_mode() -> None:
             np.testing.assert_allclose(os_["ellipses"][k, :4], of["ellipses"][k, :4], atol=3.0)
             seen += 1
     assert seen >= 3
+
+
+ENV_IDS = [ENV_ID, "gpbf_env/BlimpWaypoint-v0"]
+
+
+def test_native_vector_env_renders_the_sync_vector_envs_frames() -> None:
+    kwargs = {"num_envs": 2, "render_mode": "rgb_array", "max_episode_steps": 4}
+    native = gym.make_vec(ENV_ID, vectorization_mode="vector_entry_point", **kwargs)
+    sync = gym.make_vec(ENV_ID, vectorization_mode="sync", **kwargs)
+    assert isinstance(native.unwrapped, gpbf_env.BlimpVectorEnv)
+    assert native.render_mode == sync.render_mode == "rgb_array"
+    assert native.metadata["render_modes"] == ["rgb_array"]
+    assert native.metadata["render_fps"] == sync.metadata["render_fps"]
+    native.reset(seed=5)
+    sync.reset(seed=5)
+    rng = np.random.default_rng(3)
+    for _ in range(7):  # crosses the autoreset after step 4
+        frames, expected = native.render(), sync.render()
+        assert isinstance(frames, tuple) and len(frames) == 2
+        for frame, want in zip(frames, expected, strict=True):
+            assert frame.dtype == np.uint8 and frame.shape == want.shape
+            np.testing.assert_array_equal(frame, want)
+        actions = rng.uniform(-1, 1, (2, 3)).astype(np.float32)
+        native.step(actions)
+        sync.step(actions)
+    assert gym.make_vec(ENV_ID, num_envs=2).render() is None
+    with pytest.raises(ValueError, match="render_mode"):
+        gym.make_vec(ENV_ID, num_envs=2, render_mode="human")
+
+
+def _assert_same_info(got: dict, want: dict) -> None:
+    assert set(got) == set(want)
+    for key, value in want.items():
+        actual = got[key]
+        assert isinstance(actual, np.ndarray), key
+        assert (actual.shape, actual.dtype) == (value.shape, value.dtype), key
+        if np.issubdtype(value.dtype, np.floating):
+            np.testing.assert_allclose(actual, value, rtol=0, atol=1e-9, err_msg=key)
+        else:
+            np.testing.assert_array_equal(actual, value, err_msg=key)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_native_vector_env_info_matches_sync_vector_env(env_id: str) -> None:
+    n, seed = 3, 21
+    native = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point", max_episode_steps=30)
+    sync = gym.make_vec(env_id, num_envs=n, vectorization_mode="sync", max_episode_steps=30)
+    rng = np.random.default_rng(4)
+    partial = all_reset = 0
+    for k in range(300):
+        if k % 100 == 0:
+            _, info = native.reset(seed=seed + k)
+            _, want = sync.reset(seed=seed + k)
+            _assert_same_info(info, want)
+        gentle = k % 100 <= 30  # no crash: all blimps truncate, and autoreset, together
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32) * (0.1 if gentle else 1.0)
+        _, reward, term, trunc, info = native.step(actions)
+        _, want_reward, want_term, want_trunc, want = sync.step(actions)
+        _assert_same_info(info, want)
+        np.testing.assert_allclose(reward, want_reward, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(term | trunc, want_term | want_trunc)
+        partial += "_crashed" in want and not want["_crashed"].all()
+        all_reset += "crashed" not in want
+    assert partial > 0 and all_reset > 0  # autoresets of some and of all blimps were compared
+
+
+def _documented_info_keys() -> set[str]:
+    doc = gpbf_env.BlimpEnv.__doc__ or ""
+    section = doc.split("## Info", 1)[1].split("##", 1)[0] if "## Info" in doc else doc
+    groups = re.findall(r"info\[([^\]]+)\]", section)  # info["a"] or info["a" | "b"]
+    return {key for group in groups for key in re.findall(r'"(\w+)"', group)}
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_every_documented_info_key_is_returned(env_id: str) -> None:
+    documented = _documented_info_keys()
+    assert {"state", "t", "reward_alive"} <= documented  # the parser found the section
+    env = gym.make(env_id)
+    _, reset_info = env.reset(seed=0)
+    *_, step_info = env.step(env.action_space.sample())
+    assert set(reset_info) <= set(step_info) == documented
+    venv = gym.make_vec(env_id, num_envs=2)
+    _, vreset_info = venv.reset(seed=0)
+    *_, vstep_info = venv.step(np.zeros((2, 3), dtype=np.float32))
+    assert {k for k in vreset_info if not k.startswith("_")} == set(reset_info)
+    assert {k for k in vstep_info if not k.startswith("_")} == documented
