@@ -33,9 +33,10 @@ def throughput(spec: AgentSpec, steps: int) -> float:
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="short run (under a minute)")
+    parser.add_argument("--quick", action="store_true", help="short run (about a minute)")
+    parser.add_argument("--smoke", action="store_true", help="tiny run that only checks it works (tests)")
     args = parser.parse_args(argv)
-    minutes, points, steps = (3, 300, 1024) if args.quick else (10, 900, 4096)
+    minutes, points, steps = (1, 60, 256) if args.smoke else (3, 300, 1024) if args.quick else (10, 900, 4096)
     with tempfile.TemporaryDirectory() as tmp:
         flight = collect_flight(minutes * 60, seed=0)
         settings = TrainSettings(n_points=points, n_pseudo=50, restarts=1, max_iter=20)

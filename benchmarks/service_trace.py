@@ -29,12 +29,12 @@ class _TimedQuery:
     def __init__(self, query: Any) -> None:
         self.query, self.key_expr = query, query.key_expr
 
-    def reply(self, key: Any, payload: bytes) -> None:
-        self.query.reply(key, payload)
+    def reply(self, key: Any, payload: bytes, **kw: Any) -> None:
+        self.query.reply(key, payload, **kw)
         NOW["replied"] = time.perf_counter()
 
-    def reply_err(self, payload: bytes) -> None:
-        self.query.reply_err(payload)
+    def reply_err(self, payload: bytes, **kw: Any) -> None:
+        self.query.reply_err(payload, **kw)
 
     def drop(self) -> None:
         self.query.drop()

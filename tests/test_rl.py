@@ -136,6 +136,18 @@ def test_service_back_end_gives_the_same_observations(models: str) -> None:
             np.testing.assert_array_equal(o1, o2)
         remote.close()
         session.close()
+        # an endpoint instead of a live session: picklable, so SB3's SubprocVecEnv runs it
+        from stable_baselines3.common.vec_env import SubprocVecEnv
+
+        endpoint = f"tcp/127.0.0.1:{port}"
+        fns = [lambda: make_belief_env("belief", models=models, backend="service", client=endpoint)] * 2
+        venv = SubprocVecEnv(fns, start_method="spawn")
+        venv.seed(5)
+        first = venv.reset()
+        for _ in range(5):
+            obs, *_ = venv.step(np.zeros((2, 3), dtype=np.float32))
+        venv.close()
+        assert np.all(np.isfinite(obs)) and not np.array_equal(first, obs)
     finally:
         proc.terminate()
         proc.wait(timeout=20)

@@ -75,7 +75,11 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     backend
         ``inprocess`` or ``service``.
     client
-        A ``zenoh.Session`` connected to the service (``service`` back end).
+        The ``service`` back end's way to the service: a zenoh endpoint string (e.g.
+        ``"tcp/127.0.0.1:7447"``) or a list of them, for which the wrapper opens (and
+        closes) its own zenoh session: picklable, so the env works in SB3's
+        ``SubprocVecEnv``; or a live ``zenoh.Session`` shared by the caller (in-process
+        vector envs only).
     """
 
     def __init__(
@@ -90,10 +94,12 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         client: Any = None,
         seed: int = 0,
     ) -> None:
-        # the zenoh session (client) is not recorded: it cannot be copied
+        # a live zenoh session cannot be copied; endpoints are recorded
+        endpoints = [client] if isinstance(client, str) else client if isinstance(client, list) else None
         gym.utils.RecordConstructorArgs.__init__(
-            self, variant=variant, models=models, filter=filter, model=model, backend=backend, seed=seed
-        )
+            self, variant=variant, models=models, filter=filter, model=model, backend=backend, seed=seed,
+            client=endpoints,
+        )  # fmt: skip
         gym.Wrapper.__init__(self, env)
         if variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -112,7 +118,12 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             from estimator_service.service.client import EstimatorClient
 
             if client is None:
-                raise ValueError("the service back end needs a connected zenoh session (client=...)")
+                raise ValueError("the service back end needs client= (an endpoint or a zenoh session)")
+            self._own_session = None
+            if endpoints is not None:
+                from estimator_service.service.client import open_session
+
+                client = self._own_session = open_session(endpoints)
             self._client = EstimatorClient(client, f"env-{uuid.uuid4().hex[:12]}")
         self._rng = np.random.default_rng(seed)
         self._system = env_system(env)
@@ -187,6 +198,9 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def close(self) -> None:
         if self._client is not None:
             self._client.close()
+            if self._own_session is not None:
+                self._own_session.close()
+            self._client = None
         super().close()
 
 

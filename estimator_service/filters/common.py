@@ -89,6 +89,9 @@ class StepInfo:
         Effective sample size after weighting (particle filter only).
     resampled
         Whether the particle filter resampled.
+    gated
+        Whether an innovation gate refused the update (the belief is the prediction; ``nis``
+        is the refused update's and ``dof`` 0).
     """
 
     nis: float = math.nan
@@ -96,6 +99,7 @@ class StepInfo:
     diverged: bool = False
     ess: float | None = None
     resampled: bool = False
+    gated: bool = False
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -175,9 +175,14 @@ class EKF(_GaussianFilter):
         return results
 
     def step_many(
-        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_]
-    ) -> list[tuple[GaussianBelief, StepInfo]]:
-        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``."""
+        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_],
+        gate: Callable[[StepInfo], bool] | None = None,
+    ) -> list[tuple[GaussianBelief, StepInfo]]:  # fmt: skip
+        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``.
+
+        ``gate(info)`` True refuses an update (an implausible innovation): that belief is
+        its prediction, reported with ``dof = 0`` and the refused update's NIS.
+        """
         priors = self.predict_many(beliefs, u)
         ok = [finite(p.mean, p.cov) for p in priors]
         out = self.update_many(
@@ -185,9 +190,15 @@ class EKF(_GaussianFilter):
             z,
             valid & np.array(ok)[:, None],
         )
-        return [
-            r if f else (b, StepInfo(math.nan, 0, True)) for r, b, f in zip(out, beliefs, ok, strict=True)
-        ]
+        results = []
+        for (post, info), prior, b, f in zip(out, priors, beliefs, ok, strict=True):
+            if not f:
+                results.append((b, StepInfo(math.nan, 0, True)))
+            elif gate is not None and gate(info):
+                results.append((prior, StepInfo(info.nis, 0, False, gated=True)))
+            else:
+                results.append((post, info))
+        return results
 
 
 def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[FloatArray, FloatArray, float]:

@@ -25,7 +25,7 @@ import zenoh
 
 from estimator_service.service import keys
 from estimator_service.service.config import zenoh_config
-from estimator_service.service.protocol import PROTOCOL_VERSION, decode, decode_belief, encode
+from estimator_service.service.protocol import MSGPACK, PROTOCOL_VERSION, decode, decode_belief, encode
 
 __all__ = [
     "EstimatorClient",
@@ -123,7 +123,7 @@ class EstimatorClient:
             querier = self._queriers[kind] = self.session.declare_querier(
                 keys.blimp_key(self.blimp, kind), timeout=self.timeout
             )
-        handler = querier.get(payload=payload)
+        handler = querier.get(payload=payload, encoding=MSGPACK)
         try:  # the first reply is the answer: no wait for the query's final message
             r = handler.recv()
         except zenoh.ZError:  # closed without a reply
@@ -182,13 +182,17 @@ class EstimatorClient:
     def status(self) -> dict[str, Any]:
         return self.query("status")
 
+    def close_session(self) -> dict[str, Any]:
+        """End the blimp's session on the service (its state is gone)."""
+        return self.query("close")
+
     def _put(self, key: str, payload: bytes) -> None:
         pub = self._pubs.get(key)
         if pub is None:
             pub = self._pubs[key] = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK
+                key, congestion_control=zenoh.CongestionControl.BLOCK, encoding=MSGPACK
             )
-        pub.put(payload)
+        pub.put(payload, encoding=MSGPACK)
 
     def publish_control(self, u: np.ndarray, t: float) -> None:
         msg = {"v": PROTOCOL_VERSION, "seq": self._next_seq(), "t": float(t), "u": [float(x) for x in u]}

@@ -7,18 +7,45 @@ from pathlib import Path
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "zenoh_config"]
+__all__ = ["DEFAULT_ENDPOINT", "describe", "zenoh_config"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def zenoh_config(listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = None) -> zenoh.Config:
-    """Peer mode on loopback with multicast scouting off, unless a JSON5 file says otherwise."""
+    """Peer mode on loopback with multicast scouting off.
+
+    A JSON5 ``file`` is merged onto these safe defaults: what it sets wins, but a file that
+    does not mention ``listen`` keeps the loopback endpoints (``listen``), and one that does
+    not mention ``multicast`` keeps multicast scouting off (``{}`` changes nothing).
+    """
     if file is not None:
-        return zenoh.Config.from_file(str(file))
+        cfg = zenoh.Config.from_file(str(file))
+        text = Path(file).read_text(encoding="utf-8")
+        if "multicast" not in text:
+            cfg.insert_json5("scouting/multicast/enabled", "false")
+        if "listen" not in text and "mode" not in text:
+            cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        return cfg
     cfg = zenoh.Config()
     cfg.insert_json5("mode", '"peer"')
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
     return cfg
+
+
+def describe(cfg: zenoh.Config) -> str:
+    """``mode peer, listening on [...], connecting to [...]``: what a configuration does."""
+    mode = json.loads(cfg.get_json("mode") or "null") or "peer"
+
+    def endpoints(key: str) -> list[str]:
+        value = json.loads(cfg.get_json(key) or "null")
+        if isinstance(value, dict):  # per-mode defaults
+            value = value.get(mode, [])
+        return list(value or [])
+
+    return (
+        f"mode {mode}, listening on {endpoints('listen/endpoints') or 'nothing'}, "
+        f"connecting to {endpoints('connect/endpoints') or 'nothing'}"
+    )

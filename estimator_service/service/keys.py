@@ -20,6 +20,7 @@ __all__ = [
     "camera_key",
     "liveliness_key",
     "parse_key",
+    "sessions_key",
     "wildcard",
 ]
 
@@ -28,7 +29,7 @@ LIVELINESS_PREFIX = f"{PREFIX}/@service"
 BLIMP_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 INPUTS = ("control", "camera")
 OUTPUTS = ("belief", "error")
-QUERIES = ("step", "reset", "status")
+QUERIES = ("step", "reset", "status", "close")
 
 
 def blimp_key(blimp: str, kind: str) -> str:
@@ -48,6 +49,11 @@ def wildcard(kind: str) -> str:
 
 def liveliness_key(service_id: str) -> str:
     return f"{LIVELINESS_PREFIX}/{service_id}"
+
+
+def sessions_key(service_id: str) -> str:
+    """``gpbf/@service/<id>/sessions``: the query that lists a service's sessions (``*``: all)."""
+    return f"{LIVELINESS_PREFIX}/{service_id}/sessions"
 
 
 def parse_key(key: str) -> tuple[str | None, str, int | None]:

@@ -20,10 +20,13 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import zenoh
 from numpy.typing import NDArray
 
 __all__ = [
+    "ENCODING",
     "MAX_PAYLOAD",
+    "MSGPACK",
     "PROTOCOL_VERSION",
     "Camera",
     "Control",
@@ -42,11 +45,16 @@ __all__ = [
 ]
 
 PROTOCOL_VERSION = 2  # 2: arrays may travel as little-endian float64 bytes; beliefs do
-MAX_PAYLOAD = 64 * 1024  # bytes; anything larger is rejected unread
+MAX_PAYLOAD = 64 * 1024  # bytes; anything larger is rejected unread (in the zenoh callback)
+ENCODING = "application/msgpack"  # the zenoh encoding every payload is tagged with
 MAX_CAMERAS = 16
+MAX_ABS = 1e12  # no input number (control, sensor value, mean, spread) is larger in magnitude
 FILTERS = ("ekf", "ukf", "pf")
 MODELS = ("param", "gp", "egp", "hetgp", "sparse")
 FloatArray = NDArray[np.float64]
+
+
+MSGPACK = zenoh.Encoding(ENCODING)
 
 
 class ProtocolError(ValueError):
@@ -97,18 +105,20 @@ def _vector(val: Any, name: str, size: int) -> FloatArray:
                 f"field '{name}' must hold {size} little-endian float64 ({8 * size} bytes), "
                 f"got {len(val)} bytes"
             )
-        arr = np.frombuffer(val, dtype="<f8").astype(np.float64)
-        if not np.all(np.isfinite(arr)):
-            raise ProtocolError(f"field '{name}' contains NaN or Inf")
-        return arr
+        return _plausible(np.frombuffer(val, dtype="<f8").astype(np.float64), name)
     if not isinstance(val, (list, tuple)) or len(val) != size:
         got = len(val) if isinstance(val, (list, tuple)) else type(val).__name__
         raise ProtocolError(f"field '{name}' must be a list of {size} numbers, got {got}")
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in val):
         raise ProtocolError(f"field '{name}' must contain numbers only")
-    arr = np.asarray(val, dtype=np.float64)
+    return _plausible(np.asarray(val, dtype=np.float64), name)
+
+
+def _plausible(arr: FloatArray, name: str) -> FloatArray:
     if not np.all(np.isfinite(arr)):
         raise ProtocolError(f"field '{name}' contains NaN or Inf")
+    if np.any(np.abs(arr) > MAX_ABS):
+        raise ProtocolError(f"field '{name}' has a value beyond +-{MAX_ABS:g}")
     return arr
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,18 +20,17 @@ from typing import Any
 
 import zenoh
 
-from estimator_service.cli_args import Parser, add_filter_options, checked_int
+from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
 from estimator_service.factory import load_models, make_filter
 from estimator_service.service import keys
-from estimator_service.service.config import DEFAULT_ENDPOINT, zenoh_config
-from estimator_service.service.protocol import PROTOCOL_VERSION, encode
+from estimator_service.service.config import DEFAULT_ENDPOINT, describe, zenoh_config
+from estimator_service.service.limits import Limits
+from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings, step_together
 from estimator_service.service.workers import WorkerPool
 from estimator_service.store import model_version, read_system
 
 __all__ = ["EstimatorService", "ServiceConfig", "main", "zenoh_config"]
-
-MAX_SESSIONS = 4096
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,7 @@ class ServiceConfig:
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
     workers: int = 2
+    limits: Limits = field(default_factory=Limits)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
 
@@ -59,15 +60,21 @@ class EstimatorService:
         self._lock = threading.RLock()  # a new session builds its filter under the lock
         self._version = model_version(config.model_dir)  # refuses an incomplete or mixed folder
         self.system = read_system(config.model_dir)
-        self._settings = SessionSettings(self.system)
+        self._settings = SessionSettings(self.system, config.limits)
+        self.oversized = 0  # inputs refused in the zenoh callback, before any queue
         self._pool = WorkerPool(config.workers, step_together)
         self._build_filter(config.filter, config.model)  # fail fast on missing model files
-        self.zenoh = zenoh.open(zenoh_config(config.listen, config.connect, config.zenoh_config_file))
+        self.zenoh_cfg = zenoh_config(config.listen, config.connect, config.zenoh_config_file)
+        self.zenoh = zenoh.open(self.zenoh_cfg)
         self._pubs: dict[str, Any] = {}
         self._decls = [
             *(self.zenoh.declare_subscriber(keys.wildcard(k), self._on_sample) for k in keys.INPUTS),
             *(self.zenoh.declare_queryable(keys.wildcard(q), self._on_query) for q in keys.QUERIES),
+            self.zenoh.declare_queryable(keys.sessions_key(config.service_id), self._on_list),
         ]
+        self._stop = threading.Event()
+        self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
+        self._janitor.start()
         self._token = self.zenoh.liveliness().declare_token(keys.liveliness_key(config.service_id))
 
     # -- models and filters, shared by sessions ------------------------------------------------------
@@ -87,13 +94,23 @@ class EstimatorService:
         key = keys.blimp_key(blimp, kind)
         pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs.setdefault(key, self.zenoh.declare_publisher(key))
-        pub.put(payload)
+            pub = self._pubs.setdefault(key, self.zenoh.declare_publisher(key, encoding=MSGPACK))
+        pub.put(payload, encoding=MSGPACK)
 
-    def session(self, blimp: str) -> Session | None:
+    def session(self, blimp: str, create: bool = True) -> Session | str:
+        """The blimp's session (created when ``create``), or why there is none."""
         with self._lock:
             s = self._sessions.get(blimp)
-            if s is None and len(self._sessions) < MAX_SESSIONS:
+            if s is None and not create:
+                return f"no session for blimp {blimp!r} (a reset, step, control or camera input creates one)"
+            if s is None and len(self._sessions) >= self.config.limits.max_sessions:
+                self._expire(time.monotonic())
+            if s is None and len(self._sessions) >= self.config.limits.max_sessions:
+                cap = self.config.limits.max_sessions
+                return (
+                    f"session cap of {cap} reached: close sessions ('close') or wait for idle ones to expire"
+                )
+            if s is None:
                 s = Session(
                     blimp,
                     self.config.filter,
@@ -107,25 +124,88 @@ class EstimatorService:
                 self._sessions[blimp] = s
             return s
 
+    # -- session lifecycle ---------------------------------------------------------------------------
+    def _expire(self, now: float) -> int:
+        """Close sessions idle for longer than the limit; returns how many."""
+        ttl = self.config.limits.session_ttl_s
+        if ttl <= 0:
+            return 0
+        with self._lock:
+            old = [b for b, s in self._sessions.items() if s.idle_s(now) > ttl]
+            for b in old:
+                self._sessions.pop(b).stop()
+        return len(old)
+
+    def _expire_loop(self) -> None:
+        ttl = self.config.limits.session_ttl_s
+        while not self._stop.wait(min(5.0, ttl / 4) if ttl > 0 else 5.0):
+            self._expire(time.monotonic())
+
+    def _close_session(self, blimp: str) -> bytes:
+        with self._lock:
+            s = self._sessions.pop(blimp)
+        s.stop()
+        return encode({"v": PROTOCOL_VERSION, "blimp": blimp, "closed": True, "steps": s.steps})
+
+    def _on_list(self, query: zenoh.Query) -> None:
+        now = time.monotonic()
+        with self._lock:
+            rows = [
+                {"blimp": b, "filter": s.filter_name, "model": s.model_name, "steps": s.steps, "t": s.t,
+                 "idle_s": round(s.idle_s(now), 3)}
+                for b, s in self._sessions.items()
+            ]  # fmt: skip
+        body = {
+            "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
+            "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
+        }  # fmt: skip
+        query.reply(query.key_expr, encode(body), encoding=MSGPACK)
+
     # -- zenoh callbacks: route and enqueue, nothing else --------------------------------------------
+    def _refuse(self, blimp: str | None, kind: str, text: str, query: zenoh.Query | None = None) -> None:
+        msg = encode({"v": PROTOCOL_VERSION, "blimp": blimp, "input": kind, "error": text})
+        if query is not None:
+            query.reply_err(msg, encoding=MSGPACK)
+        elif blimp:
+            self._publish(blimp, "error", msg)
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         blimp, kind, extra = keys.parse_key(str(sample.key_expr))
-        session = self.session(blimp) if blimp else None
-        if session is None:
+        if blimp is None:
             return
-        session.submit(kind, sample.payload.to_bytes(), None, extra)  # size is checked on decode
+        if len(sample.payload) > MAX_PAYLOAD:  # before anything is queued or created
+            self.oversized += 1
+            self._refuse(
+                blimp, kind, f"payload of {len(sample.payload)} bytes exceeds the {MAX_PAYLOAD}-byte cap"
+            )
+            return
+        session = self.session(blimp)
+        if isinstance(session, str):
+            self._refuse(blimp, kind, session)
+            return
+        session.submit(kind, sample.payload.to_bytes(), None, extra)
 
     def _on_query(self, query: zenoh.Query) -> None:
         blimp, kind, _ = keys.parse_key(str(query.key_expr))
-        session = self.session(blimp) if blimp else None
-        if session is None:
-            query.reply_err(encode({"v": PROTOCOL_VERSION, "error": "invalid blimp id or too many sessions"}))
+        if blimp is None:
+            self._refuse(None, kind, "invalid blimp id: 1-64 characters of A-Z a-z 0-9 _ -", query)
             return
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        session.submit(kind, payload, query)
+        size = len(query.payload) if query.payload is not None else 0
+        if size > MAX_PAYLOAD:
+            self.oversized += 1
+            self._refuse(blimp, kind, f"payload of {size} bytes exceeds the {MAX_PAYLOAD}-byte cap", query)
+            return
+        session = self.session(blimp, create=kind not in ("status", "close"))
+        if isinstance(session, str):
+            self._refuse(blimp, kind, session, query)
+        elif kind == "close":
+            query.reply(query.key_expr, self._close_session(blimp), encoding=MSGPACK)
+        else:
+            session.submit(kind, query.payload.to_bytes() if query.payload is not None else b"", query)
 
     def close(self) -> None:
         """Stop taking input, let the workers finish what is queued, leave zenoh."""
+        self._stop.set()
         self._token.undeclare()
         for d in self._decls:
             d.undeclare()
@@ -148,6 +228,39 @@ def build_parser() -> Parser:
     p.add_argument(
         "--workers", type=checked_int(1, 64), default=2, help="worker threads shared by all sessions"
     )
+    lim = Limits()
+    p.add_argument(
+        "--horizon",
+        type=checked_float(0.0, 1e6, low_open=True),
+        default=lim.horizon_s,
+        help="seconds an input may lie after its session's time (more: rejected; reset to re-sync)",
+    )
+    p.add_argument(
+        "--queue-cap",
+        type=checked_int(1, 1_000_000),
+        default=lim.queue_cap,
+        help="pending inputs per session (over it the oldest is dropped and counted)",
+    )
+    p.add_argument(
+        "--max-controls",
+        type=checked_int(1, 1_000_000),
+        default=lim.max_controls,
+        help="streamed controls a session remembers",
+    )
+    p.add_argument(
+        "--gate-p",
+        type=checked_float(0.0, 0.5),
+        default=lim.gate_p,
+        help="innovation gate: skip an update whose NIS tail probability is below this (0: off)",
+    )
+    p.add_argument(
+        "--session-ttl",
+        type=checked_float(0.0, 1e9),
+        default=lim.session_ttl_s,
+        help="seconds without input after which a session is closed (0: never)",
+    )
+    p.add_argument("--max-sessions", type=checked_int(1, 1_000_000), default=lim.max_sessions,
+                   help="sessions per service")  # fmt: skip
     p.add_argument(
         "--blas-threads", type=checked_int(0, 256), default=0, help="BLAS threads (0: library default)"
     )
@@ -169,6 +282,9 @@ def main(argv: list[str] | None = None) -> int:
         args.zenoh_config,
         args.particles,
         args.workers,
+        Limits(
+            args.horizon, args.queue_cap, args.max_controls, args.gate_p, args.session_ttl, args.max_sessions
+        ),
     )
     try:
         service = EstimatorService(cfg)
@@ -178,10 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(
-        f"gpbf serve: ready, service {cfg.service_id}, listening on {', '.join(cfg.listen)}",
-        flush=True,
-    )
+    print(f"gpbf serve: ready, service {cfg.service_id}, {describe(service.zenoh_cfg)}", flush=True)
     while not stop.wait(0.5):
         pass
     service.close()

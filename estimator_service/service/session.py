@@ -20,7 +20,9 @@ from typing import Any
 import numpy as np
 
 from estimator_service.filters import GaussianBelief, StepInfo
+from estimator_service.service.limits import ControlLog, Limits, gated
 from estimator_service.service.protocol import (
+    MSGPACK,
     PROTOCOL_VERSION,
     ProtocolError,
     decode,
@@ -36,7 +38,6 @@ from estimator_service.system import System
 
 __all__ = ["Session", "SessionSettings", "WorkerPool", "step_together"]
 
-QUEUE_CAP = 100_000
 BATCH = 32  # inputs a worker takes from one session before giving others a turn
 
 
@@ -46,6 +47,7 @@ class SessionSettings:
     sensor layout, control and state sizes, and the prior of a new session)."""
 
     system: System
+    limits: Limits = field(default_factory=Limits)
 
 
 @dataclass
@@ -68,16 +70,20 @@ class Session:
     rejected: int = 0
     late: int = 0
     batched: int = 0
+    dropped: int = 0
+    gated: int = 0
     t: float | None = None
     pool: WorkerPool | None = None
     _pending: deque = field(default_factory=deque)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _scheduled: bool = False
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
-    _controls: list = field(default_factory=list)
+    _nis: list = field(default_factory=lambda: [0.0, 0])  # running sum of NIS/dof, count
 
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
+        self._controls = ControlLog(self.settings.limits.max_controls, self.settings.system.control_dim)
+        self.last_active = time.monotonic()
         sys_ = self.settings.system
         prior = GaussianBelief(np.array(sys_.prior_mean), np.diag(np.square(sys_.prior_std)))
         self._install(prior, self.seed)
@@ -87,17 +93,27 @@ class Session:
 
     # -- called from zenoh callbacks: enqueue only --------------------------------------------
     def submit(self, kind: str, payload: bytes, query: Any = None, extra: Any = None) -> None:
+        """Queue an input; at the queue cap the oldest pending one is dropped (O(1))."""
+        self.last_active = time.monotonic()
+        cap = self.settings.limits.queue_cap
         with self._lock:
-            full = len(self._pending) >= QUEUE_CAP
-            if not full:
-                self._pending.append((kind, payload, query, extra))
-                wake, self._scheduled = not self._scheduled, True
-        if full:
-            self.rejected += 1
-            if query is not None:
-                query.reply_err(encode({"v": PROTOCOL_VERSION, "error": "session queue full"}))
-        elif wake:
+            dropped = self._pending.popleft() if len(self._pending) >= cap else None
+            self._pending.append((kind, payload, query, extra))
+            wake, self._scheduled = not self._scheduled, True
+        if dropped is not None:
+            self.dropped += 1
+            if dropped[2] is not None:
+                text = f"session queue full ({cap} inputs): dropped"
+                dropped[2].reply_err(self._error(text, dropped[0]), encoding=MSGPACK)
+                dropped[2].drop()
+        if wake:
             self.pool.schedule(self)
+
+    def idle_s(self, now: float | None = None) -> float:
+        """Seconds since the last input; 0 while inputs are pending."""
+        with self._lock:
+            busy = bool(self._pending) or self._scheduled
+        return 0.0 if busy else (now or time.monotonic()) - self.last_active
 
     def stop(self) -> None:
         if self._own_pool:
@@ -146,7 +162,7 @@ class Session:
         try:
             reply = compute()
             if query is not None:
-                query.reply(query.key_expr, reply)
+                query.reply(query.key_expr, reply, encoding=MSGPACK)
             if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
                 self.publish("belief", reply)
         except ProtocolError as exc:
@@ -168,12 +184,15 @@ class Session:
             job[2].drop()
         self._reschedule()
 
+    def _error(self, text: str, kind: str) -> bytes:
+        return encode({"v": PROTOCOL_VERSION, "blimp": self.blimp, "input": kind, "error": text})
+
     def _reject(self, text: str, kind: str, query: Any) -> None:
         self.rejected += 1
-        msg = encode({"v": PROTOCOL_VERSION, "blimp": self.blimp, "input": kind, "error": text})
+        msg = self._error(text, kind)
         self.publish("error", msg)
         if query is not None:
-            query.reply_err(msg)
+            query.reply_err(msg, encoding=MSGPACK)
 
     def _handle(self, kind: str, payload: bytes, extra: Any) -> bytes | None:
         if kind == "status":
@@ -186,8 +205,7 @@ class Session:
         if kind == "control":
             c = parse_control(msg, self.settings.system.control_dim)
             self._check_time(c.t)
-            self._controls.append((c.t, c.u))
-            self._controls.sort(key=lambda tc: tc[0])
+            self._controls.add(c.t, c.u)
             return None
         if kind == "camera":
             return self._camera(parse_camera(msg, extra, self._sizes))
@@ -198,6 +216,15 @@ class Session:
             self.late += 1
             raise ProtocolError(
                 f"field 't': {t} is older than the session time {self.t} (late or out of order)"
+            )
+        self._check_horizon(t)
+
+    def _check_horizon(self, t: float) -> None:
+        horizon = self.settings.limits.horizon_s
+        if self.t is not None and t - self.t > horizon:
+            raise ProtocolError(
+                f"field 't': {t} is {t - self.t:.6g} s after the session time {self.t}, beyond the "
+                f"service's horizon of {horizon:g} s; send a reset to re-synchronise"
             )
 
     # -- filtering ---------------------------------------------------------------------------------
@@ -225,6 +252,9 @@ class Session:
             raise ProtocolError("filter produced a non-finite belief; input rejected")
         self._belief, self.t = belief, t
         self.steps += 1
+        if info.dof > 0 and math.isfinite(info.nis):
+            self._nis[0] += info.nis / info.dof
+            self._nis[1] += 1
         ms = (time.perf_counter() - t0) * 1e3
         self._timings.append(ms)
         return encode_belief(
@@ -247,14 +277,22 @@ class Session:
         if self.t is not None and s.t <= self.t:
             self.late += 1
             raise ProtocolError(f"field 't': step time {s.t} is not after the session time {self.t}")
+        self._check_horizon(s.t)
         z, valid = self.settings.system.frames(s.frames)
         return s, z, valid
 
     def _step(self, payload: bytes) -> bytes:
         t0 = time.perf_counter()
         s, z, valid = self._prepare_step(payload)
-        belief, info = self._update(self._predict(self._belief, s.u), z, valid)
+        belief, info = self._gate(*self._update(prior := self._predict(self._belief, s.u), z, valid), prior)
         return self._commit(belief, info, s.seq, s.t, t0)
+
+    def _gate(self, belief: Any, info: StepInfo, prior: Any) -> tuple[Any, StepInfo]:
+        """The prior instead of an update whose innovation fails the gate (counted)."""
+        if not gated(info, self.settings.limits.gate_p):
+            return belief, info
+        self.gated += 1
+        return prior, StepInfo(info.nis, 0, False, gated=True)
 
     def _camera(self, c) -> bytes:
         t0 = time.perf_counter()
@@ -265,14 +303,14 @@ class Session:
         for i in range(n):  # predict to the frame's time with the controls then in force
             belief = self._predict(belief, self._control_at(self.t + i * dt))
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
-        belief, info = self._update(belief, z, valid)
+        belief, info = self._gate(*self._update(belief, z, valid), belief)
         return self._commit(belief, info, c.seq, c.t, t0)
 
     def _control_at(self, t: float) -> np.ndarray:
         """The latest control at or before ``t``; older ones are forgotten."""
-        past = [c for c in self._controls if c[0] <= t + 1e-9]
-        self._controls = past[-1:] + [c for c in self._controls if c[0] > t + 1e-9]
-        return past[-1][1] if past else np.zeros(self.settings.system.control_dim)
+        u = self._controls.at(t)
+        self._controls.forget_before(t)
+        return u
 
     def _reset(self, r) -> bytes:
         if r.filter or r.model:
@@ -282,7 +320,8 @@ class Session:
             )
             self._filter = self.make_filter(self.filter_name, self.model_name)
         self._install(GaussianBelief(r.mean, r.cov), r.seed)
-        self.t, self.steps, self._controls = r.t, 0, []
+        self.t, self.steps, self._nis = r.t, 0, [0.0, 0]
+        self._controls.clear()
         g = self._filter.gaussian(self._belief)
         return encode_belief(
             self.blimp,
@@ -310,6 +349,9 @@ class Session:
                 "steps": self.steps,
                 "rejected": self.rejected,
                 "late": self.late,
+                "dropped": self.dropped,
+                "gated": self.gated,
+                "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
                 "batched": self.batched,
                 "t": self.t,
                 "queue": len(self._pending),
@@ -338,11 +380,13 @@ def step_together(batch: list[tuple[Session, tuple]]) -> None:
             s._close_job(job)
     try:
         if ready:
+            gate_p = ready[0][0].settings.limits.gate_p
             results = ready[0][0]._filter.step_many(
                 [s._belief for s, _, _ in ready],
                 np.stack([p[0].u for _, _, p in ready]),
                 np.stack([p[1] for _, _, p in ready]),
                 np.stack([p[2] for _, _, p in ready]),
+                gate=lambda info: gated(info, gate_p),
             )
     except Exception:  # fall back: each job alone, with its own error handling
         for s, job, _ in ready:
@@ -350,6 +394,7 @@ def step_together(batch: list[tuple[Session, tuple]]) -> None:
             s._close_job(job)
         return
     for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
+        s.gated += info.gated  # refused by the gate: the belief is the prediction
         s.batched += len(ready) > 1
         s._answer(
             job,

@@ -1,0 +1,115 @@
+"""What bounds the work and memory one message, one session and one service can cost.
+
+Every limit is configuration (``gpbf serve`` options) and documented in
+``docs/protocol.md``; the defaults are chosen so that normal use never meets them.
+"""
+
+from __future__ import annotations
+
+import bisect
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from estimator_service.filters import StepInfo
+
+__all__ = ["ControlLog", "Limits", "gated"]
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Service limits.
+
+    Attributes
+    ----------
+    horizon_s
+        An input whose time is more than this after its session's time is rejected (a
+        camera frame there would make the session predict ``horizon_s / dt`` steps);
+        re-synchronise with a ``reset``. 60 s is 240 blimp steps, about 0.5 s of work.
+    queue_cap
+        Pending inputs per session. Over it, the oldest pending streaming input (control
+        or camera put) is dropped and counted (``dropped`` in ``status``); a query over it
+        gets an error reply.
+    max_controls
+        Streamed controls a session remembers (the latest ones); older ones are forgotten.
+    gate_p
+        Innovation gate: a sensor update whose NIS has a chi-square tail probability below
+        ``gate_p`` is not applied (the prediction is kept, ``gated`` counts it), as
+        robot_localization's Mahalanobis threshold; 0 turns the gate off.
+    session_ttl_s
+        A session without input for this long is closed (0: never).
+    max_sessions
+        Sessions per service; at the cap, expired sessions are closed first, otherwise a
+        new blimp is refused with an error naming the cap.
+    """
+
+    horizon_s: float = 60.0
+    queue_cap: int = 1024
+    max_controls: int = 256
+    gate_p: float = 1e-9
+    session_ttl_s: float = 600.0
+    max_sessions: int = 4096
+
+    def __post_init__(self) -> None:
+        checks = {
+            "horizon_s": self.horizon_s > 0, "queue_cap": self.queue_cap >= 1,
+            "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
+            "session_ttl_s": self.session_ttl_s >= 0,
+            "max_sessions": self.max_sessions >= 1,
+        }  # fmt: skip
+        bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
+        if bad:
+            raise ValueError(
+                f"service limits out of range: {', '.join(f'{k}={getattr(self, k)}' for k in bad)}"
+            )
+
+
+def gated(info: StepInfo, gate_p: float) -> bool:
+    """Whether an update's innovation is too improbable to apply (a non-finite NIS is)."""
+    if gate_p <= 0 or info.dof <= 0:
+        return False
+    return not math.isfinite(info.nis) or info.nis > _threshold(gate_p, info.dof)
+
+
+@functools.lru_cache(maxsize=1024)
+def _threshold(gate_p: float, dof: int) -> float:
+    """The NIS whose chi-square tail probability with ``dof`` degrees of freedom is ``gate_p``."""
+    return float(chi2.isf(gate_p, dof))
+
+
+class ControlLog:
+    """Streamed controls by time, at most ``cap`` of them (the latest); O(log n) per call."""
+
+    def __init__(self, cap: int, control_dim: int) -> None:
+        self._cap, self._zero = cap, np.zeros(control_dim)
+        self._t: list[float] = []
+        self._u: list[NDArray[np.float64]] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def add(self, t: float, u: NDArray[np.float64]) -> None:
+        i = bisect.bisect_right(self._t, t)
+        self._t.insert(i, t)
+        self._u.insert(i, u)
+        if len(self._t) > self._cap:
+            del self._t[0], self._u[0]
+
+    def at(self, t: float) -> NDArray[np.float64]:
+        """The latest control at or before ``t`` (zeros before the first)."""
+        i = bisect.bisect_right(self._t, t + 1e-9)
+        return self._u[i - 1] if i else self._zero
+
+    def forget_before(self, t: float) -> None:
+        """Drop controls superseded at ``t`` (the one in force at ``t`` stays)."""
+        i = bisect.bisect_right(self._t, t + 1e-9) - 1
+        if i > 0:
+            del self._t[:i], self._u[:i]
+
+    def clear(self) -> None:
+        self._t.clear()
+        self._u.clear()

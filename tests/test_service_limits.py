@@ -1,0 +1,222 @@
+"""The service under hostile input, against real processes: bounded work and memory per
+message, gating, the session lifecycle, and a protocol document that matches the code."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.sim import collect_flight
+from estimator_service.service import keys
+from estimator_service.service.client import (
+    EstimatorClient,
+    ServiceError,
+    free_port,
+    open_session,
+    spawn_service,
+)
+from estimator_service.service.config import zenoh_config
+from estimator_service.service.limits import Limits
+from estimator_service.service.protocol import ENCODING, MAX_PAYLOAD, PROTOCOL_VERSION, decode, encode
+from estimator_service.training import TrainSettings, train_models
+
+ROOT = Path(__file__).resolve().parents[1]
+V = PROTOCOL_VERSION
+STD = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
+ELLIPSE = [320.0, 240.0, 40.0, 20.0, 0.1]
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return collect_flight(30, seed=5)
+
+
+@pytest.fixture(scope="module")
+def models(flight, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("limit_models")
+    s = TrainSettings(
+        n_points=50, n_pseudo=8, restarts=1, max_iter=8, hetero_iterations=1, calibration_seconds=0
+    )
+    train_models([flight], out, kinds=["param", "gp"], settings=s)
+    return out
+
+
+class Running:
+    """A ``gpbf serve`` process and a client session connected to it."""
+
+    def __init__(self, models: Path, *options: str) -> None:
+        self.port = free_port()
+        self.proc, self.ready = spawn_service(models, self.port, *options)
+        self.session = open_session([f"tcp/127.0.0.1:{self.port}"])
+        time.sleep(0.2)
+
+    def client(self, blimp: str, **kw) -> EstimatorClient:
+        return EstimatorClient(self.session, blimp, timeout=5.0, **kw)
+
+    def rss_mb(self) -> float:
+        text = Path(f"/proc/{self.proc.pid}/status").read_text()
+        return int(re.search(r"VmRSS:\s+(\d+)", text).group(1)) / 1024
+
+    def sessions(self) -> dict:
+        replies = list(self.session.get(keys.sessions_key("*"), timeout=3.0))
+        assert len(replies) == 1 and replies[0].ok is not None
+        return decode(replies[0].ok.payload.to_bytes())
+
+    def close(self) -> int:
+        self.session.close()
+        self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(timeout=20)
+
+
+def _lock_step_ms(c: EstimatorClient, flight, k: int) -> float:
+    t0 = time.perf_counter()
+    c.step(flight.control[k], [], float(flight.t[k + 1]))
+    return 1e3 * (time.perf_counter() - t0)
+
+
+def test_far_future_input_is_rejected_and_healthy_blimps_keep_answering(models, flight) -> None:
+    svc = Running(models)
+    try:
+        bad, good = svc.client("attacker"), svc.client("healthy")
+        bad.reset(flight.state[0], STD, t=0.0)
+        good.reset(flight.state[0], STD, t=float(flight.t[0]))
+        for j in range(4):  # four small puts that used to occupy the workers for 4e9 steps each
+            svc.client(f"attacker{j}").reset(flight.state[0], STD, t=0.0)
+            svc.client(f"attacker{j}").publish_camera(0, ELLIPSE, 1e9)
+        bad.publish_camera(0, ELLIPSE, 1e9)
+        worst = max(_lock_step_ms(good, flight, k) for k in range(30))
+        assert worst < 100.0, worst
+        errors = bad.errors(wait=0.5)
+        assert any("horizon" in e["error"] and "reset" in e["error"] for e in errors), errors
+        with pytest.raises(ServiceError, match="horizon"):
+            bad.step(flight.control[0], [], 1e9)
+    finally:
+        assert svc.close() == 0
+
+
+def test_floods_of_valid_and_oversized_messages_stay_bounded(models, flight) -> None:
+    svc = Running(models)
+    try:
+        c = svc.client("flooded")
+        c.reset(flight.state[0], STD, t=0.0)
+        before = svc.rss_mb()
+        big = encode({"v": V, "seq": 1, "t": 1.0, "u": [0.0, 0.0, 0.0], "pad": "x" * (MAX_PAYLOAD - 200)})
+        huge = b"\x00" * (1 << 20)
+        for _ in range(300):
+            c.publish_raw("control", huge)
+        for _ in range(3000):
+            c.publish_raw("control", big)
+        for i in range(100_000):  # valid controls, never followed by a frame
+            c.publish_control([0.1, 0.0, 0.0], 0.001 * i)
+        t0 = time.perf_counter()
+        status = c.status()
+        answered_s = time.perf_counter() - t0
+        grown = svc.rss_mb() - before
+        assert svc.sessions()["oversized"] == 300
+        assert grown < 150.0, f"service grew {grown:.0f} MB"
+        assert answered_s < 5.0 and status["dropped"] > 0
+    finally:
+        assert svc.close() == 0
+
+
+def test_an_implausible_frame_is_gated_and_normal_input_still_works(models, flight) -> None:
+    svc = Running(models)
+    try:
+        c = svc.client("poisoned")
+        c.reset(flight.state[0], STD, t=float(flight.t[0]))
+        with pytest.raises(ServiceError, match="beyond"):
+            c.step(flight.control[0], [[0, [1e308] * 5]], float(flight.t[1]))
+        b = c.step(flight.control[0], [[0, [1e9, 1e9, 1e9, 1e9, 0.0]]], float(flight.t[1]))
+        assert np.all(np.isfinite(b["mean"])) and np.abs(b["mean"]).max() < 100
+        for k in range(1, 12):  # normal input keeps working
+            frames = [
+                [int(j), flight.z[k + 1].reshape(-1, 5)[j].tolist()]
+                for j in np.flatnonzero(flight.valid[k + 1])
+            ]
+            b = c.step(flight.control[k], frames, float(flight.t[k + 1]))
+        status = c.status()
+        assert status["gated"] == 1 and np.isfinite(status["nis_per_dof_mean"])
+        assert np.linalg.norm(b["mean"][:3] - flight.state[12, :3]) < 0.5
+    finally:
+        assert svc.close() == 0
+
+
+def test_session_lifecycle_status_close_list_expiry_and_cap(models, flight) -> None:
+    svc = Running(models, "--session-ttl", "1", "--max-sessions", "2")
+    try:
+        with pytest.raises(ServiceError, match="no session"):
+            svc.client("ghost").status()
+        assert svc.sessions()["count"] == 0  # the status query created nothing
+        a, b = svc.client("a"), svc.client("b")
+        a.reset(flight.state[0], STD)
+        b.reset(flight.state[0], STD)
+        assert sorted(s["blimp"] for s in svc.sessions()["sessions"]) == ["a", "b"]
+        with pytest.raises(ServiceError, match="session cap of 2"):
+            svc.client("c").reset(flight.state[0], STD)
+        assert a.close_session()["closed"] is True
+        assert [s["blimp"] for s in svc.sessions()["sessions"]] == ["b"]
+        time.sleep(2.5)  # b idles past the 1 s limit
+        assert svc.sessions()["count"] == 0
+        svc.client("c").reset(flight.state[0], STD)
+    finally:
+        assert svc.close() == 0
+
+
+def test_non_ascii_camera_keys_payload_encoding_and_ready_line(models) -> None:
+    svc = Running(models)
+    try:
+        assert f"mode peer, listening on ['tcp/127.0.0.1:{svc.port}']" in svc.ready
+        c = svc.client("keys", stream=True)
+        c.reset(np.zeros(12), STD)
+        seen = []
+        sub = svc.session.declare_subscriber(
+            keys.blimp_key("keys", "belief"), lambda s: seen.append(str(s.encoding))
+        )
+        c.publish_raw("camera/²", encode({"v": V, "seq": 1, "t": 0.5, "ellipse": ELLIPSE}))
+        errors = c.errors(wait=0.5)
+        assert any("camera" in e["error"] for e in errors), errors
+        c.publish_camera(0, ELLIPSE, 0.5)
+        c.next_belief(timeout=5)
+        time.sleep(0.2)
+        sub.undeclare()
+        assert seen and all(e.startswith(ENCODING) for e in seen), seen
+        assert c.status()["steps"] == 1
+    finally:
+        assert svc.close() == 0
+
+
+def test_a_user_config_is_merged_onto_the_safe_defaults(tmp_path: Path) -> None:
+    empty = tmp_path / "empty.json5"
+    empty.write_text("{}")
+    cfg = zenoh_config(listen=("tcp/127.0.0.1:7999",), file=empty)
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7999"]
+    own = tmp_path / "own.json5"
+    own.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7998"] }, '
+                   'scouting: { multicast: { enabled: true } } }')  # fmt: skip
+    cfg = zenoh_config(file=own)
+    assert json.loads(cfg.get_json("scouting/multicast/enabled")) is True
+    assert json.loads(cfg.get_json("mode")) == "client"
+
+
+def test_protocol_document_matches_the_code() -> None:
+    doc = (ROOT / "docs" / "protocol.md").read_text()
+    assert f"# Estimator service protocol, version {PROTOCOL_VERSION}" in doc
+    assert f"(protocol version, {PROTOCOL_VERSION})" in doc
+    assert ENCODING in doc and f"{MAX_PAYLOAD // 1024} KiB" in doc
+    for kind in (*keys.INPUTS, *keys.OUTPUTS, *keys.QUERIES):
+        assert f"`gpbf/<blimp>/{kind}" in doc, kind
+    assert "`gpbf/@service/<id>/sessions`" in doc and "model_version" in doc
+    lim = Limits()
+    flags = {
+        "--horizon": lim.horizon_s, "--queue-cap": lim.queue_cap, "--max-controls": lim.max_controls,
+        "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s, "--max-sessions": lim.max_sessions,
+    }  # fmt: skip
+    for flag, value in flags.items():
+        assert re.search(rf"`{flag}`[^|]*\| {re.escape(format(value, 'g'))} ", doc), flag
