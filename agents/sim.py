@@ -93,6 +93,7 @@ def collect_flight(
     rng = np.random.default_rng(seed)
     driver = make_pilot(pilot, rng)
     obs, info = env.reset(seed=seed)
+    flown = [env.unwrapped.params.to_dict()]  # each episode's parameters (domain randomisation)
     steps = round(seconds / env.unwrapped.config.dt)
     rows: dict[str, list[Any]] = {k: [] for k in ("t", "state", "control", "ellipses", "valid", "episode")}
     episode = 0
@@ -114,6 +115,7 @@ def collect_flight(
         if terminated or truncated:
             episode += 1
             obs, info = env.reset()
+            flown.append(env.unwrapped.params.to_dict())
         if progress:
             progress(k + 1, steps)
     cfg = env.unwrapped.config
@@ -123,7 +125,9 @@ def collect_flight(
         "env_id": env_id,
         "dt": cfg.dt,
         "env_config": {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("params", "weights")},
-        "params": cfg.params.to_dict(),
+        "params": flown[0],
+        "episode_params": flown,
+        "base_params": cfg.params.to_dict(),
         "cameras": camera_metadata(env),
     }
     env.close()

@@ -30,6 +30,7 @@ __all__ = [
     "blimp_system",
     "fit_parametric",
     "load_parametric",
+    "measured",
     "save_parametric",
 ]
 
@@ -95,6 +96,27 @@ def fit_parametric(
     z = np.concatenate([f.z for f in flights])
     valid = np.concatenate([f.valid for f in flights])
     return ode, fit_camera_model(calibrations(flights[0]), state, z, valid)
+
+
+def measured(flights: Sequence[Flight], key: str) -> float:
+    """A measured constant (``mass``, ``tail_arm``) of the blimp the flights flew: each
+    episode's own value (``metadata["episode_params"]``, recorded under domain randomisation)
+    weighted by its transitions, or ``metadata["params"]`` where episodes are not recorded."""
+    values, weights = [], []
+    for f in flights:
+        per_episode = f.metadata.get("episode_params")
+        if not per_episode and "params" not in f.metadata:
+            raise ValueError(f"the blimp's parametric model needs '{key}' in the flights' metadata 'params'")
+        counts = np.bincount(f.episode[f.transition_rows()], minlength=len(per_episode or ()))
+        if per_episode and len(counts) == len(per_episode):
+            values += [float(p[key]) for p in per_episode]
+            weights += counts.tolist()
+        else:  # episodes renumbered (e.g. cross-validation folds): the first episode's values
+            values.append(float(f.metadata["params"][key]))
+            weights.append(len(f.transition_rows()))
+    if len(set(values)) == 1:
+        return values[0]
+    return float(np.average(values, weights=np.maximum(weights, 0) + 1e-12))
 
 
 def save_parametric(ode: BlimpODE, cam: CameraModel, path: str | os.PathLike[str]) -> Path:

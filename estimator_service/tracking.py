@@ -60,7 +60,15 @@ def group_rms(err: FloatArray, groups: Sequence[Group] | None = None) -> dict[st
     """RMS of state errors ``(T, n)`` per group, in the group's units (the blimp's
     :data:`GROUPS` when ``groups`` is None)."""
     gs = _blimp_groups() if groups is None else groups
-    return {g.name: float(np.sqrt(np.mean(err[:, list(g.indices)] ** 2)) * g.factor) for g in gs}
+    return {g.name: float(np.sqrt(np.mean(err[:, _columns(g.indices)] ** 2)) * g.factor) for g in gs}
+
+
+def _columns(indices: tuple[int, ...]) -> slice | list[int]:
+    """A slice for consecutive indices (a view: the same summation order as before groups
+    were configurable, so scores are bit-identical), else the index list."""
+    if list(indices) == list(range(indices[0], indices[0] + len(indices))):
+        return slice(indices[0], indices[0] + len(indices))
+    return list(indices)
 
 
 @dataclass(frozen=True)

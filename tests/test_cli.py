@@ -70,3 +70,16 @@ def test_version(capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         gpbf(["--version"])
     assert exc.value.code == 0 and capsys.readouterr().out.startswith("gpbf ")
+
+
+def test_progress_is_one_display_with_periodic_plain_lines_off_a_terminal() -> None:
+    import io
+
+    from estimator_service.progress import ProgressBar
+
+    out = io.StringIO()  # not a terminal: no bar redraws, a line every `every_s` and at the end
+    with ProgressBar("train", 1000, unit="step", stream=out, every_s=3600) as bar:
+        for k in range(1000):
+            bar.update_to(k + 1)
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("train: 1000/1000 steps (100%)") and "ETA" in lines[0]

@@ -146,3 +146,9 @@ def test_unknown_kinds_are_rejected(model_dir: Path) -> None:
         build_filter("kf", "gp", model_dir)
     with pytest.raises(ValueError, match="model kind"):
         build_filter("ekf", "nn", model_dir)
+
+
+@pytest.mark.parametrize("filter_kind", FILTER_KINDS)
+def test_filters_print_short(model_dir: Path, filter_kind: str) -> None:
+    text = repr(build_filter(filter_kind, "egp", model_dir))
+    assert len(text) < 1500 and "e-" not in text.split("noise_var")[0], text  # no factor values
