@@ -110,6 +110,7 @@ def build_parser() -> Parser:
     p.add_argument("--version", action="version", version=f"gpbf {package_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     sub.add_parser("serve", help="run the estimator service (see 'gpbf serve --help')", add_help=False)
+    sub.add_parser("router", help="run a zenoh router for a fleet (see 'gpbf router --help')", add_help=False)
 
     c = sub.add_parser("collect", help="fly a pilot in the simulator and record a flight")
     c.add_argument(
@@ -176,6 +177,10 @@ def build_parser() -> Parser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["router"]:
+        from estimator_service.service.router import main as router
+
+        return router(argv[1:])
     if argv[:1] == ["serve"]:  # the service has its own parser and lifecycle
         from estimator_service.service.server import main as serve
 

@@ -149,6 +149,7 @@ def build_parser(prog: str = "python -m estimator_service") -> Parser:
     p.add_argument("--version", action="version", version=f"gpbf {package_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     sub.add_parser("serve", help="run the estimator service (see 'serve --help')", add_help=False)
+    sub.add_parser("router", help="run a zenoh router for a fleet (see 'router --help')", add_help=False)
     add_train_track(sub)
     return p
 
@@ -164,6 +165,10 @@ def run(args: argparse.Namespace, prog: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["router"]:
+        from estimator_service.service.router import main as router
+
+        return router(argv[1:])
     if argv[:1] == ["serve"]:
         from estimator_service.service.server import main as serve
 

@@ -10,6 +10,8 @@ benchmarks do.
 
 from __future__ import annotations
 
+import itertools
+import logging
 import os
 import queue
 import socket
@@ -17,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -25,20 +27,42 @@ import zenoh
 
 from estimator_service.service import keys
 from estimator_service.service.config import zenoh_config
-from estimator_service.service.protocol import MSGPACK, PROTOCOL_VERSION, decode, decode_belief, encode
+from estimator_service.service.protocol import (
+    MSGPACK,
+    NO_SESSION,
+    PROTOCOL_VERSION,
+    decode,
+    decode_belief,
+    encode,
+)
 
 __all__ = [
     "EstimatorClient",
+    "NoReply",
     "ServiceError",
+    "SessionLost",
     "free_port",
+    "list_sessions",
     "open_session",
     "services",
     "spawn_service",
 ]
 
 
+log = logging.getLogger("estimator_service.client")
+
+
 class ServiceError(RuntimeError):
     """The service answered with an error, or did not answer."""
+
+
+class NoReply(ServiceError):
+    """No service answered in time (none runs, or the owner of the blimp just died)."""
+
+
+class SessionLost(ServiceError):
+    """The service has no session for the blimp (it restarted, expired it, or the blimp moved
+    to another service of the fleet)."""
 
 
 def open_session(connect: Sequence[str] = ("tcp/127.0.0.1:7447",), config_file=None) -> zenoh.Session:
@@ -76,6 +100,15 @@ def spawn_service(
     return proc, line.strip()
 
 
+def list_sessions(session: zenoh.Session, timeout: float = 2.0) -> list[dict[str, Any]]:
+    """Every live service's ``sessions`` reply (its sessions, cap and view of the fleet)."""
+    replies = session.get(
+        keys.sessions_key("*"), target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout,
+    )  # fmt: skip
+    return [decode(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+
+
 def services(session: zenoh.Session, timeout: float = 2.0) -> list[str]:
     """Ids of the estimator services currently alive (liveliness tokens)."""
     replies = session.liveliness().get(keys.liveliness_key("*"), timeout=timeout)
@@ -86,9 +119,21 @@ class EstimatorClient:
     """One blimp's view of the service."""
 
     def __init__(
-        self, session: zenoh.Session, blimp: str, timeout: float = 10.0, *, stream: bool = False
-    ) -> None:
-        self.session, self.blimp, self.timeout = session, blimp, timeout
+        self, session: zenoh.Session, blimp: str, timeout: float = 10.0, *, stream: bool = False,
+        failover: bool = False, attempt_timeout: float = 0.5, failover_s: float = 2.0,
+        on_resync: Callable[[str, dict[str, Any]], None] | None = None,
+    ) -> None:  # fmt: skip
+        """``failover``: a query waits ``attempt_timeout`` for a reply and is sent again until
+        ``failover_s`` has passed, so a fleet's surviving service takes over a dead owner's
+        blimp. Whenever the service answers that it has no session, the client re-creates it
+        from the last belief it received (a ``reset`` to that mean, covariance and time),
+        counts it in ``resyncs`` and reports it through ``on_resync(blimp, last_belief)`` and
+        a warning on the ``estimator_service.client`` logger."""
+        self.session, self.blimp = session, blimp
+        self.timeout = attempt_timeout if failover else timeout
+        self.failover, self.failover_s, self.on_resync = failover, failover_s, on_resync
+        self.resyncs = 0
+        self._last: dict[str, Any] | None = None
         self._seq = 0
         self._beliefs: queue.Queue = queue.Queue()
         self._errors: queue.Queue = queue.Queue()
@@ -121,23 +166,55 @@ class EstimatorClient:
         querier = self._queriers.get(kind)
         if querier is None:  # declared once per key: a lock-step loop skips the per-query routing set-up
             querier = self._queriers[kind] = self.session.declare_querier(
-                keys.blimp_key(self.blimp, kind), timeout=self.timeout
+                keys.blimp_key(self.blimp, kind), timeout=self.timeout, target=zenoh.QueryTarget.ALL
             )
         handler = querier.get(payload=payload, encoding=MSGPACK)
         try:  # the first reply is the answer: no wait for the query's final message
             r = handler.recv()
         except zenoh.ZError:  # closed without a reply
             msg = f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
-            raise ServiceError(msg) from None
+            raise NoReply(msg) from None
         if r.ok is None:
             raw_err = r.err.payload.to_bytes()
             try:
                 text = decode(raw_err).get("error", "unknown error")
             except ValueError:
                 text = raw_err.decode("utf-8", "replace")  # zenoh's own errors, e.g. Timeout
-            raise ServiceError(f"{kind} for blimp {self.blimp!r}: {text}")
+            error = SessionLost if str(text).startswith(NO_SESSION) else ServiceError
+            raise error(f"{kind} for blimp {self.blimp!r}: {text}")
         body = r.ok.payload.to_bytes()
-        return decode_belief(body) if kind in ("step", "reset") else decode(body)
+        if kind not in ("step", "reset"):
+            return decode(body)
+        self._last = decode_belief(body)
+        return self._last
+
+    def _with_failover(self, send: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+        """``send()``, re-sent while no service answers (``failover``) and after re-creating a
+        lost session from the last belief, until ``failover_s`` has passed."""
+        deadline = time.monotonic() + (self.failover_s if self.failover else 0.0)
+        for attempt in itertools.count():
+            try:
+                return send()
+            except SessionLost:
+                if self._last is None or (attempt >= 2 and time.monotonic() > deadline):
+                    raise
+                try:
+                    self._resync()
+                except NoReply:
+                    if time.monotonic() > deadline:
+                        raise
+            except NoReply:
+                if time.monotonic() > deadline:
+                    raise
+        raise AssertionError("unreachable")
+
+    def _resync(self) -> None:
+        last = self._last
+        self.reset(last["mean"], cov=last["cov"], t=last["t"], filter=last["filter"], model=last["model"])
+        self.resyncs += 1
+        log.warning("blimp %r: session re-created from its last belief (t = %s)", self.blimp, last["t"])
+        if self.on_resync is not None:
+            self.on_resync(self.blimp, last)
 
     def reset(
         self,
@@ -177,7 +254,7 @@ class EstimatorClient:
             "u": [float(x) for x in u],
             "frames": frames,
         }
-        return self.query("step", msg)
+        return self._with_failover(lambda: self.query("step", msg))
 
     def status(self) -> dict[str, Any]:
         return self.query("status")

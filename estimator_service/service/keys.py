@@ -7,7 +7,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import re
+from collections.abc import Iterable
 
 __all__ = [
     "BLIMP_ID",
@@ -19,6 +21,7 @@ __all__ = [
     "blimp_key",
     "camera_key",
     "liveliness_key",
+    "owner",
     "parse_key",
     "sessions_key",
     "wildcard",
@@ -54,6 +57,13 @@ def liveliness_key(service_id: str) -> str:
 def sessions_key(service_id: str) -> str:
     """``gpbf/@service/<id>/sessions``: the query that lists a service's sessions (``*``: all)."""
     return f"{LIVELINESS_PREFIX}/{service_id}/sessions"
+
+
+def owner(blimp: str, services: Iterable[str]) -> str | None:
+    """The service that owns ``blimp`` among the live ``services`` (rendezvous hashing: each
+    blimp goes to the service with the highest ``sha256(service/blimp)``, so when a service
+    joins or leaves only the blimps it takes or held move). None when there is none."""
+    return max(services, key=lambda s: hashlib.sha256(f"{s}/{blimp}".encode()).digest(), default=None)
 
 
 def parse_key(key: str) -> tuple[str | None, str, int | None]:

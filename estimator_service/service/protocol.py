@@ -27,6 +27,7 @@ __all__ = [
     "ENCODING",
     "MAX_PAYLOAD",
     "MSGPACK",
+    "NO_SESSION",
     "PROTOCOL_VERSION",
     "Camera",
     "Control",
@@ -46,6 +47,7 @@ __all__ = [
 
 PROTOCOL_VERSION = 2  # 2: arrays may travel as little-endian float64 bytes; beliefs do
 MAX_PAYLOAD = 64 * 1024  # bytes; anything larger is rejected unread (in the zenoh callback)
+NO_SESSION = "no session for blimp"  # how every error about a missing session starts
 ENCODING = "application/msgpack"  # the zenoh encoding every payload is tagged with
 MAX_CAMERAS = 16
 MAX_ABS = 1e12  # no input number (control, sensor value, mean, spread) is larger in magnitude
@@ -235,10 +237,13 @@ def encode_belief(
     dof: int,
     diverged: bool,
     step_ms: float,
+    service: str = "",
 ) -> bytes:
-    """The belief message: mean, covariance (row-major, packed float64), and the step report."""
+    """The belief message: mean, covariance (row-major, packed float64), the step report and
+    the id of the service that computed it."""
     return encode(
         {
+            "service": service,
             "v": PROTOCOL_VERSION,
             "blimp": blimp,
             "seq": int(seq),

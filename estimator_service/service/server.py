@@ -3,8 +3,13 @@
 Key expressions (``docs/protocol.md``): inputs ``gpbf/<blimp>/control`` and
 ``gpbf/<blimp>/camera/<k>``; output ``gpbf/<blimp>/belief``; errors ``gpbf/<blimp>/error``;
 queryables ``gpbf/<blimp>/step``, ``gpbf/<blimp>/reset``, ``gpbf/<blimp>/status``; a
-liveliness token ``gpbf/@service/<id>``. One session per blimp id, created on first contact
-(default filter and model) or by a reset that names them.
+liveliness token ``gpbf/@service/<id>``. One session per blimp id, created by a ``reset``.
+
+A fleet: several services on one zenoh network each see the others' liveliness tokens and
+serve only the blimps they own (rendezvous hashing over the live services,
+:func:`~estimator_service.service.keys.owner`); the others ignore that blimp's input.
+When a service dies its blimps move to the survivors, which have no session for them: the
+client re-creates each from its last belief (``EstimatorClient(failover=True)``).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from estimator_service.factory import load_models, make_filter
 from estimator_service.service import keys
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, zenoh_config
 from estimator_service.service.limits import Limits
-from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, PROTOCOL_VERSION, encode
+from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings, step_together
 from estimator_service.service.workers import WorkerPool
 from estimator_service.store import model_version, read_system
@@ -75,6 +80,10 @@ class EstimatorService:
         self._stop = threading.Event()
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
+        self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
+        self._fleet = self.zenoh.liveliness().declare_subscriber(
+            keys.liveliness_key("*"), self._on_token, history=True
+        )
         self._token = self.zenoh.liveliness().declare_token(keys.liveliness_key(config.service_id))
 
     # -- models and filters, shared by sessions ------------------------------------------------------
@@ -102,7 +111,8 @@ class EstimatorService:
         with self._lock:
             s = self._sessions.get(blimp)
             if s is None and not create:
-                return f"no session for blimp {blimp!r} (a reset, step, control or camera input creates one)"
+                why = "new blimp, service restarted, blimp moved or expired"
+                return f"{NO_SESSION} {blimp!r}: send a reset ({why})"
             if s is None and len(self._sessions) >= self.config.limits.max_sessions:
                 self._expire(time.monotonic())
             if s is None and len(self._sessions) >= self.config.limits.max_sessions:
@@ -119,10 +129,31 @@ class EstimatorService:
                     self._build_filter,
                     lambda kind, p, b=blimp: self._publish(b, kind, p),
                     self._version,
+                    self.config.service_id,
                     pool=self._pool,
                 )
                 self._sessions[blimp] = s
             return s
+
+    # -- the fleet ------------------------------------------------------------------------------------
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A service joined or left: update the view and give up the blimps now owned elsewhere."""
+        service = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._live = self._live | {service}
+            elif service != self.config.service_id:
+                self._live = self._live - {service}
+            moved = [b for b in self._sessions if not self._owns(b)]
+            for b in moved:
+                self._sessions.pop(b).stop()
+
+    def _owns(self, blimp: str) -> bool:
+        return keys.owner(blimp, self._live) == self.config.service_id
+
+    def fleet(self) -> list[str]:
+        with self._lock:
+            return sorted(self._live)
 
     # -- session lifecycle ---------------------------------------------------------------------------
     def _expire(self, now: float) -> int:
@@ -158,8 +189,10 @@ class EstimatorService:
         body = {
             "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
+            "fleet": self.fleet(),
         }  # fmt: skip
-        query.reply(query.key_expr, encode(body), encoding=MSGPACK)
+        # its own key, not the query's wildcard: replies of several services are not merged
+        query.reply(keys.sessions_key(self.config.service_id), encode(body), encoding=MSGPACK)
 
     # -- zenoh callbacks: route and enqueue, nothing else --------------------------------------------
     def _refuse(self, blimp: str | None, kind: str, text: str, query: zenoh.Query | None = None) -> None:
@@ -171,7 +204,7 @@ class EstimatorService:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         blimp, kind, extra = keys.parse_key(str(sample.key_expr))
-        if blimp is None:
+        if blimp is None or not self._owns(blimp):
             return
         if len(sample.payload) > MAX_PAYLOAD:  # before anything is queued or created
             self.oversized += 1
@@ -179,7 +212,7 @@ class EstimatorService:
                 blimp, kind, f"payload of {len(sample.payload)} bytes exceeds the {MAX_PAYLOAD}-byte cap"
             )
             return
-        session = self.session(blimp)
+        session = self.session(blimp, create=False)
         if isinstance(session, str):
             self._refuse(blimp, kind, session)
             return
@@ -190,12 +223,15 @@ class EstimatorService:
         if blimp is None:
             self._refuse(None, kind, "invalid blimp id: 1-64 characters of A-Z a-z 0-9 _ -", query)
             return
+        if not self._owns(blimp):  # another service of the fleet answers
+            query.drop()
+            return
         size = len(query.payload) if query.payload is not None else 0
         if size > MAX_PAYLOAD:
             self.oversized += 1
             self._refuse(blimp, kind, f"payload of {size} bytes exceeds the {MAX_PAYLOAD}-byte cap", query)
             return
-        session = self.session(blimp, create=kind not in ("status", "close"))
+        session = self.session(blimp, create=kind == "reset")
         if isinstance(session, str):
             self._refuse(blimp, kind, session, query)
         elif kind == "close":
@@ -206,6 +242,7 @@ class EstimatorService:
     def close(self) -> None:
         """Stop taking input, let the workers finish what is queued, leave zenoh."""
         self._stop.set()
+        self._fleet.undeclare()
         self._token.undeclare()
         for d in self._decls:
             d.undeclare()

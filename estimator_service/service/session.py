@@ -65,6 +65,7 @@ class Session:
     make_filter: Callable[[str, str], Any]
     publish: Callable[[str, bytes], None]
     model_version: str = ""
+    service_id: str = ""
     seed: int = 0
     steps: int = 0
     rejected: int = 0
@@ -269,6 +270,7 @@ class Session:
             info.dof,
             info.diverged,
             ms,
+            service=self.service_id,
         )
 
     def _prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
@@ -335,6 +337,7 @@ class Session:
             0,
             False,
             0.0,
+            service=self.service_id,
         )
 
     def _status(self) -> bytes:

@@ -1,0 +1,57 @@
+"""``gpbf router``: a zenoh router for a fleet of estimator services and their clients.
+
+No ``zenohd`` binary comes from the package registries here, so this is a zenoh session in
+router mode: services (``gpbf serve --connect tcp/HOST:PORT``) and clients
+(``open_session(["tcp/HOST:PORT"])``) on one or several machines meet through it. Multicast
+scouting stays off; ``--zenoh-config`` is merged as for the service.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import zenoh
+
+from estimator_service.cli_args import Parser
+from estimator_service.service.config import DEFAULT_ENDPOINT, describe, zenoh_config
+
+__all__ = ["main", "router_config"]
+
+
+def router_config(listen: tuple[str, ...] = (DEFAULT_ENDPOINT,), file: Path | None = None) -> zenoh.Config:
+    """Router mode listening on ``listen`` (loopback by default), multicast scouting off."""
+    cfg = zenoh_config(listen=listen, file=file)
+    if file is None or "mode" not in Path(file).read_text(encoding="utf-8"):
+        cfg.insert_json5("mode", '"router"')
+        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = Parser(prog="gpbf router", description=__doc__)
+    p.add_argument(
+        "--listen", action="append", default=None, help=f"endpoint (repeatable; none: {DEFAULT_ENDPOINT})"
+    )
+    p.add_argument(
+        "--zenoh-config", type=Path, default=None, help="JSON5 zenoh config merged onto the defaults"
+    )
+    args = p.parse_args(argv)
+    cfg = router_config(tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config)
+    try:
+        session = zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        print(f"gpbf router: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"gpbf router: ready, {describe(cfg)}", flush=True)
+    while not stop.wait(0.5):
+        pass
+    session.close()
+    print("gpbf router: stopped", flush=True)
+    return 0

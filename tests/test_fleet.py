@@ -1,0 +1,111 @@
+"""A fleet of estimator services through a router: one owner per blimp, failover when an
+owner dies, a blimp's session re-created by its client from the last belief."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from agents.sim import collect_flight
+from estimator_service.service import keys
+from estimator_service.service.client import EstimatorClient, free_port, open_session, spawn_service
+from estimator_service.service.protocol import decode, decode_belief
+from estimator_service.training import TrainSettings, train_models
+
+ALL, NONE = zenoh.QueryTarget.ALL, zenoh.ConsolidationMode.NONE  # every reply of every service
+STD = np.repeat([0.05, 0.035, 0.05, 0.035], 3)
+BLIMPS = 30
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return collect_flight(30, seed=8)
+
+
+@pytest.fixture(scope="module")
+def models(flight, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("fleet_models")
+    s = TrainSettings(n_points=50, n_pseudo=8, restarts=1, max_iter=8, hetero_iterations=1)
+    train_models([flight], out, kinds=["param", "gp"], settings=s)
+    return out
+
+
+def _fleet_views(session: zenoh.Session) -> list[list[str]]:
+    replies = session.get(keys.sessions_key("*"), target=ALL, consolidation=NONE, timeout=2.0)
+    return [decode(r.ok.payload.to_bytes())["fleet"] for r in replies if r.ok is not None]
+
+
+def _answers(session: zenoh.Session, blimp: str) -> int:
+    """How many services answer a status query for ``blimp`` (reply or error reply)."""
+    key = keys.blimp_key(blimp, "status")
+    return len(list(session.get(key, target=ALL, consolidation=NONE, timeout=2.0)))
+
+
+def test_each_blimp_has_one_owner_and_survives_its_owner_dying(models, flight) -> None:
+    port = free_port()
+    router = subprocess.Popen(
+        [sys.executable, "-m", "estimator_service", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    procs = []
+    try:
+        assert "mode router" in router.stdout.readline()
+        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(3)]
+        procs = [p for p, _ in started]
+        session = open_session([f"tcp/127.0.0.1:{port}"])
+        deadline = time.time() + 20
+        while time.time() < deadline and not (
+            len(views := _fleet_views(session)) == 3 and all(len(v) == 3 for v in views)
+        ):
+            time.sleep(0.2)
+        assert len(views) == 3 and all(len(v) == 3 for v in views), views
+        streamed: Counter = Counter()
+
+        def count(sample: zenoh.Sample) -> None:
+            streamed.update([(str(sample.key_expr), decode_belief(sample.payload.to_bytes())["seq"])])
+
+        sub = session.declare_subscriber(keys.wildcard("belief"), count)
+        clients = [EstimatorClient(session, f"blimp{i}", failover=True) for i in range(BLIMPS)]
+        owner = {}
+        for c in clients:
+            owner[c.blimp] = c.reset(flight.state[0], STD, t=float(flight.t[0]))["service"]
+        assert len(set(owner.values())) == 3  # the blimps are spread over the fleet
+
+        def round_of_steps(k: int) -> dict[str, str]:
+            served = {}
+            for c in clients:
+                t0 = time.perf_counter()
+                b = c.step(flight.control[k], [], float(flight.t[k + 1]))
+                assert time.perf_counter() - t0 < 2.0, (c.blimp, time.perf_counter() - t0)
+                served[c.blimp] = b["service"]
+            return served
+
+        for k in range(3):
+            assert round_of_steps(k) == owner
+        assert all(_answers(session, c.blimp) == 1 for c in clients)
+        dead = owner["blimp0"]
+        victim = next(p for p, ready in started if f"service {dead}," in ready)
+        victim.kill()
+        victim.wait(timeout=10)
+        for k in range(3, 8):
+            served = round_of_steps(k)
+            assert dead not in served.values()
+        moved = {b for b, s in owner.items() if s == dead}
+        assert {c.blimp for c in clients if c.resyncs} == moved
+        assert all(c.resyncs == 1 for c in clients if c.resyncs)
+        assert all(_answers(session, c.blimp) == 1 for c in clients)
+        time.sleep(0.3)
+        sub.undeclare()
+        assert streamed and max(streamed.values()) == 1  # no belief delivered twice
+        session.close()
+    finally:
+        for p in procs:
+            p.kill()
+        router.kill()
