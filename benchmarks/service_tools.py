@@ -37,6 +37,28 @@ def service_session(models: Path, model: str, trace: Path | None = None) -> Iter
         proc.wait(timeout=20)
 
 
+@contextmanager
+def fleet_session(models: Path, model: str, n: int = 2) -> Iterator[Any]:
+    """A zenoh session connected to ``n`` ``gpbf serve`` processes that form one fleet (each
+    connects to the first); all closed on exit."""
+    ports = [free_port() for _ in range(n)]
+    join = ("--connect", f"tcp/127.0.0.1:{ports[0]}")
+    procs = [
+        spawn_service(models, port, "--model", model, *(join if i else ()), merge_stderr=False)[0]
+        for i, port in enumerate(ports)
+    ]
+    session = open_session([f"tcp/127.0.0.1:{port}" for port in ports])
+    try:
+        time.sleep(1.0)  # the services see each other's liveliness tokens
+        yield session
+    finally:
+        session.close()
+        for proc in procs:
+            proc.terminate()
+        for proc in procs:
+            proc.wait(timeout=20)
+
+
 def step_inputs(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` lock-step inputs: a control ``(3,)`` and two cameras' ellipses ``(10,)`` each."""
     return [(rng.normal(size=3), rng.normal(size=10) * 0.3) for _ in range(n)]

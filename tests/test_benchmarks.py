@@ -14,7 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 EXPECTED = {
     "bench_agents.py": {"state_steps_per_s", "belief_steps_per_s", "belief_to_state_ratio"},
-    "bench_service.py": {"rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz"},
+    "bench_service.py": {
+        "rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz", "fleet_blimps_at_4hz",
+        "overhead_over_zenoh_floor",
+    },
     "bench_filters.py": {
         "ekf_ms", "ukf_ms", "pf_exact_ms", "pf_sparse_ms",
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",

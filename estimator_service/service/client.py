@@ -80,6 +80,7 @@ def free_port() -> int:
 def spawn_service(
     models: str | os.PathLike[str], port: int, *options: str,
     command: Sequence[str] = (sys.executable, "-m", "estimator_service"), merge_stderr: bool = True,
+    cwd: str | os.PathLike[str] | None = None,
 ) -> tuple[subprocess.Popen, str]:  # fmt: skip
     """Start ``gpbf serve --models MODELS OPTIONS --listen tcp/127.0.0.1:PORT`` as another
     process (``command`` replaces ``python -m estimator_service``, e.g. by an instrumented
@@ -90,7 +91,7 @@ def spawn_service(
     """
     proc = subprocess.Popen(
         [*command, "--models", os.fspath(models), *options, "--listen", f"tcp/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT if merge_stderr else None, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT if merge_stderr else None, text=True, cwd=cwd,
     )  # fmt: skip
     assert proc.stdout is not None
     line = proc.stdout.readline()

@@ -16,16 +16,20 @@ def zenoh_config(listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = Non
     """Peer mode on loopback with multicast scouting off.
 
     A JSON5 ``file`` is merged onto these safe defaults: what it sets wins, but a file that
-    does not mention ``listen`` keeps the loopback endpoints (``listen``), and one that does
-    not mention ``multicast`` keeps multicast scouting off (``{}`` changes nothing).
+    does not mention ``listen`` keeps the loopback endpoints (``listen``), one that does not
+    mention ``connect`` takes ``connect``, and one that does not mention ``multicast`` keeps
+    multicast scouting off (``{}`` changes nothing).
     """
     if file is not None:
         cfg = zenoh.Config.from_file(str(file))
-        text = Path(file).read_text(encoding="utf-8")
-        if "multicast" not in text:
+        unset = zenoh.Config()  # what a file that does not set a key leaves
+        if cfg.get_json("scouting/multicast/enabled") == unset.get_json("scouting/multicast/enabled"):
             cfg.insert_json5("scouting/multicast/enabled", "false")
-        if "listen" not in text and "mode" not in text:
+        mode_set = cfg.get_json("mode") != unset.get_json("mode")
+        if not mode_set and cfg.get_json("listen/endpoints") == unset.get_json("listen/endpoints"):
             cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect and cfg.get_json("connect/endpoints") == unset.get_json("connect/endpoints"):
+            cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
         return cfg
     cfg = zenoh.Config()
     cfg.insert_json5("mode", '"peer"')

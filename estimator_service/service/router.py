@@ -25,7 +25,7 @@ __all__ = ["main", "router_config"]
 def router_config(listen: tuple[str, ...] = (DEFAULT_ENDPOINT,), file: Path | None = None) -> zenoh.Config:
     """Router mode listening on ``listen`` (loopback by default), multicast scouting off."""
     cfg = zenoh_config(listen=listen, file=file)
-    if file is None or "mode" not in Path(file).read_text(encoding="utf-8"):
+    if cfg.get_json("mode") == zenoh.Config().get_json("mode"):  # the file set no mode
         cfg.insert_json5("mode", '"router"')
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     return cfg

@@ -1,0 +1,69 @@
+"""docs/examples/secure: user/password authentication and an ACL that lets only the named
+pilot reset and step blimps, tested both ways against a real service."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.sim import collect_flight
+from estimator_service.service.client import EstimatorClient, NoReply, free_port, open_session, spawn_service
+from estimator_service.training import TrainSettings, train_models
+
+ROOT = Path(__file__).resolve().parents[1]
+STD = np.full(12, 0.1)
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("secure_models")
+    s = TrainSettings(
+        n_points=40, n_pseudo=8, restarts=1, max_iter=5, hetero_iterations=1, calibration_seconds=0
+    )
+    train_models([collect_flight(20, seed=3)], out, kinds=["param"], settings=s)
+    return out
+
+
+def _client(endpoint: list[str], config: Path | None, blimp: str):
+    session = open_session(endpoint, config_file=config)
+    time.sleep(0.3)
+    return session, EstimatorClient(session, blimp, timeout=1.5)
+
+
+def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -> None:
+    for f in (ROOT / "docs" / "examples" / "secure").iterdir():
+        shutil.copy(f, tmp_path / f.name)
+    port = free_port()
+    proc, ready = spawn_service(
+        models, port, "--model", "param", "--zenoh-config", "service.json5", cwd=tmp_path
+    )
+    endpoint = [f"tcp/127.0.0.1:{port}"]
+    opened = []
+    try:
+        assert f"listening on ['tcp/127.0.0.1:{port}']" in ready
+        s, pilot = _client(endpoint, tmp_path / "pilot.json5", "guarded")
+        opened.append(s)
+        pilot.reset(np.zeros(12), STD)
+        assert pilot.step(np.zeros(3), [], 0.25)["t"] == 0.25
+        s, viewer = _client(endpoint, tmp_path / "viewer.json5", "guarded")
+        opened.append(s)
+        assert viewer.status()["steps"] == 1  # a logged-in viewer may read
+        with pytest.raises(NoReply):
+            viewer.reset(np.zeros(12), STD)
+        with pytest.raises(NoReply):
+            viewer.step(np.zeros(3), [], 0.5)
+        s, anonymous = _client(endpoint, None, "guarded")
+        opened.append(s)
+        with pytest.raises(NoReply):
+            anonymous.reset(np.zeros(12), STD)
+        assert pilot.status()["steps"] == 1  # neither changed the pilot's blimp
+    finally:
+        for s in opened:
+            s.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
