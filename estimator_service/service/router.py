@@ -25,7 +25,8 @@ __all__ = ["main", "router_config"]
 def router_config(listen: tuple[str, ...] = (DEFAULT_ENDPOINT,), file: Path | None = None) -> zenoh.Config:
     """Router mode listening on ``listen`` (loopback by default), multicast scouting off."""
     cfg = zenoh_config(listen=listen, file=file)
-    if cfg.get_json("mode") == zenoh.Config().get_json("mode"):  # the file set no mode
+    unset = zenoh.Config().get_json("mode")
+    if file is None or zenoh.Config.from_file(str(file)).get_json("mode") == unset:  # no mode chosen
         cfg.insert_json5("mode", '"router"')
         cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
     return cfg
