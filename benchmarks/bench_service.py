@@ -167,9 +167,10 @@ def capacity(
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="short run (under a minute)")
+    parser.add_argument("--smoke", action="store_true", help="tiny run that only checks it works (tests)")
     args = parser.parse_args(argv)
-    n_rtt, seconds = (60, 2.0) if args.quick else (400, 6.0)
-    levels = [25, 50, 200] if args.quick else [25, 50, 100, 150, 200, 250, 300, 400]
+    n_rtt, seconds = (30, 1.0) if args.smoke else (60, 2.0) if args.quick else (400, 6.0)
+    levels = [25] if args.smoke else [25, 50, 200] if args.quick else [25, 50, 100, 150, 200, 250, 300, 400]
     with tempfile.TemporaryDirectory() as tmp:
         models = Path(tmp)
         write_models(models)
