@@ -5,9 +5,8 @@ Every file the estimator writes (models, flights, calibration, reports) goes thr
 flushed, and the temporary file is renamed over the destination. The result has the mode
 an ordinary ``open(path, "w")`` would give (``0o666`` less the process umask), not the
 ``0o600`` of a bare temporary file. A failed write removes its temporary file; one
-killed outright (``SIGKILL``) leaves a ``.gpbf-*.tmp`` file behind, which
-:func:`remove_stale_temps` (called by the model store before it writes a folder)
-clears.
+killed outright (``SIGKILL``) leaves a ``.gpbf-*.tmp`` file behind, which the next write
+into the same folder removes once it is an hour old (:func:`remove_stale_temps`).
 """
 
 from __future__ import annotations
@@ -32,6 +31,7 @@ __all__ = [
 
 TEMP_PREFIX = ".gpbf-"
 TEMP_SUFFIX = ".tmp"
+STALE_AFTER_S = 3600.0  # no write takes this long: an older temporary file's writer is dead
 
 
 def current_umask() -> int:
@@ -57,6 +57,7 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], objec
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     folder.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(folder, STALE_AFTER_S)  # left by a writer killed outright
     fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=TEMP_SUFFIX, dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:

@@ -81,7 +81,14 @@ def test_written_files_follow_the_umask_and_failed_writes_leave_nothing(tmp_path
     with pytest.raises(RuntimeError):
         atomic_write(tmp_path / "b.bin", boom)
     assert sorted(x.name for x in tmp_path.iterdir()) == ["a.txt"]
-    (tmp_path / ".gpbf-killed.tmp").write_bytes(b"left by SIGKILL")
+    killed = tmp_path / ".gpbf-killed.tmp"
+    killed.write_bytes(b"left by SIGKILL")
+    atomic_write_text(tmp_path / "c.txt", "y")  # a fresh one may belong to a live writer
+    assert killed.exists()
+    os.utime(killed, (0, 0))  # an hour and more old: its writer is dead
+    atomic_write_text(tmp_path / "c.txt", "z")
+    assert not killed.exists()
+    killed.write_bytes(b"again")
     assert remove_stale_temps(tmp_path) == 1
 
 
