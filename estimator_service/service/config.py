@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import signal
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "describe", "zenoh_config"]
+__all__ = ["DEFAULT_ENDPOINT", "describe", "serve_until_stopped", "zenoh_config"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -53,3 +56,17 @@ def describe(cfg: zenoh.Config) -> str:
         f"mode {mode}, listening on {endpoints('listen/endpoints') or 'nothing'}, "
         f"connecting to {endpoints('connect/endpoints') or 'nothing'}"
     )
+
+
+def serve_until_stopped(prog: str, ready: str, close: Callable[[], None]) -> int:
+    """Print ``prog: ready, <ready>``, wait for SIGINT or SIGTERM, ``close()``, print that it
+    stopped; the exit code 0 (the process plumbing of ``gpbf serve`` and ``gpbf router``)."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"{prog}: ready, {ready}", flush=True)
+    while not stop.wait(0.5):
+        pass
+    close()
+    print(f"{prog}: stopped", flush=True)
+    return 0

@@ -9,15 +9,13 @@ scouting stays off; ``--zenoh-config`` is merged as for the service.
 from __future__ import annotations
 
 import json
-import signal
 import sys
-import threading
 from pathlib import Path
 
 import zenoh
 
 from estimator_service.cli_args import Parser
-from estimator_service.service.config import DEFAULT_ENDPOINT, describe, zenoh_config
+from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
 
 __all__ = ["main", "router_config"]
 
@@ -47,12 +45,4 @@ def main(argv: list[str] | None = None) -> int:
     except zenoh.ZError as exc:
         print(f"gpbf router: error: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    print(f"gpbf router: ready, {describe(cfg)}", flush=True)
-    while not stop.wait(0.5):
-        pass
-    session.close()
-    print("gpbf router: stopped", flush=True)
-    return 0
+    return serve_until_stopped("gpbf router", describe(cfg), session.close)

@@ -14,7 +14,6 @@ client re-creates each from its last belief (``EstimatorClient(failover=True)``)
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 import time
@@ -28,7 +27,7 @@ import zenoh
 from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
 from estimator_service.factory import load_models, make_filter
 from estimator_service.service import keys
-from estimator_service.service.config import DEFAULT_ENDPOINT, describe, zenoh_config
+from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
 from estimator_service.service.limits import Limits
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings, step_together
@@ -328,12 +327,6 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, zenoh.ZError) as exc:
         print(f"gpbf serve: error: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    print(f"gpbf serve: ready, service {cfg.service_id}, {describe(service.zenoh_cfg)}", flush=True)
-    while not stop.wait(0.5):
-        pass
-    service.close()
-    print("gpbf serve: stopped", flush=True)
-    return 0
+    return serve_until_stopped(
+        "gpbf serve", f"service {cfg.service_id}, {describe(service.zenoh_cfg)}", service.close
+    )
