@@ -137,8 +137,10 @@ def time_steps(step, reps: int) -> float:
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
+    parser.add_argument("--smoke", action="store_true", help="one repetition, 200 particles (tests)")
     args = parser.parse_args(argv)
-    reps, base_reps = (3, 1) if args.quick else (20, 3)
+    reps, base_reps = (1, 1) if args.smoke else (3, 1) if args.quick else (20, 3)
+    particles = 200 if args.smoke else M_PARTICLES
     rng = np.random.default_rng(0)
     exact, sparse, pdata, odata, (zp, zo) = build(rng)
     belief = GaussianBelief(rng.normal(size=NX) * 0.5, np.eye(NX) * 0.01)
@@ -146,21 +148,19 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     ours = {
         "ekf": EKF(GPPredictionModel(exact[0], NX), GPObservationModel(exact[1])),
         "ukf": UKF(GPPredictionModel(exact[0], NX), GPObservationModel(exact[1])),
-        "pf_exact": PF(
-            GPPredictionModel(exact[0], NX), GPObservationModel(exact[1]), n_particles=M_PARTICLES
-        ),
+        "pf_exact": PF(GPPredictionModel(exact[0], NX), GPObservationModel(exact[1]), n_particles=particles),
         "pf_sparse": PF(
-            GPPredictionModel(sparse[0], NX), GPObservationModel(sparse[1]), n_particles=M_PARTICLES
+            GPPredictionModel(sparse[0], NX), GPObservationModel(sparse[1]), n_particles=particles
         ),
     }
     base = {
         "ekf": EKF(SkPrediction(*pdata), SkObservation(*odata)),
         "ukf": UKF(SkPrediction(*pdata, loop_rows=True), SkObservation(*odata, loop_rows=True)),
-        "pf_exact": PF(SkPrediction(*pdata), SkObservation(*odata), n_particles=M_PARTICLES),
+        "pf_exact": PF(SkPrediction(*pdata), SkObservation(*odata), n_particles=particles),
         "pf_sparse": PF(
             SkPrediction(*pdata, centres=zp),
             SkObservation(*odata, centres=zo),
-            n_particles=M_PARTICLES,
+            n_particles=particles,
         ),
     }
     targets = {"ekf": 0.5, "ukf": 2.0, "pf_exact": 800.0, "pf_sparse": 25.0}
@@ -168,12 +168,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     for name in ours:
         t = {}
         for label, filt, r in (("ours", ours[name], reps), ("base", base[name], base_reps)):
-            if isinstance(filt, PF):
-                prng = np.random.default_rng(1)
-                pb = filt.initial(belief, prng)
-                t[label] = time_steps(lambda f=filt, pb=pb, prng=prng: f.step(pb, u, z, valid, prng), r)
-            else:
-                t[label] = time_steps(lambda f=filt: f.step(belief, u, z, valid), r)
+            prng = np.random.default_rng(1)
+            start = filt.initial(belief, prng)  # every filter: its belief for a Gaussian start
+            t[label] = time_steps(lambda f=filt, b=start, prng=prng: f.step(b, u, z, valid, prng), r)
         speed = t["base"] / t["ours"]
         print(f"{name:10s} ours {t['ours'] * 1e3:9.2f} ms (target <= {targets[name]:g} ms)   "
               f"sklearn+loops {t['base'] * 1e3:9.1f} ms   speed-up {speed:6.1f}x")  # fmt: skip

@@ -38,7 +38,7 @@ EXPECTED = {
 
 
 #: scripts whose --quick run is over a minute have a --smoke mode for this test
-SMOKE = {"bench_agents.py", "bench_service.py"}
+SMOKE = {"bench_agents.py", "bench_filters.py", "bench_service.py"}
 
 
 @pytest.mark.parametrize("script", sorted(EXPECTED))

@@ -63,7 +63,7 @@ def data_sparsity(
     tick: Callable[[], None] | None = None,
 ) -> dict[str, dict[str, dict[str, list[float]]]]:
     """Run both curves; ``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}``."""
-    seg = round(track_seconds / 0.25)
+    seg = round(track_seconds / test.dt)
     jobs = [("points", n, "gp") for n in points] + [("pseudo", m, "sparse") for m in pseudo]
     out: dict[str, dict[str, dict[str, list[float]]]] = {"points": {}, "pseudo": {}}
     with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:

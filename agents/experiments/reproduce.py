@@ -118,8 +118,8 @@ def one_step_errors(folder: Path, test: Flight, kind: str) -> dict[str, float]:
 def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: str) -> dict[str, float]:
     """Tables 7-9 and consistency: scores averaged over test segments of ``track_seconds``."""
     f = build_filter(filt, kind, folder, **({"n_particles": s.particles} if filt == "pf" else {}))
-    seg = round(s.track_seconds / 0.25)
-    length = min(seg, round(s.pf_seconds / 0.25)) if filt == "pf" else seg
+    seg = round(s.track_seconds / test.dt)
+    length = min(seg, round(s.pf_seconds / test.dt)) if filt == "pf" else seg
     rows = segments(len(test), seg, length)
     with single_threaded_blas() if filt == "pf" else nullcontext():  # PF: 266 -> 177 ms per step
         scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
@@ -160,7 +160,7 @@ def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dic
     ):
         ukf = build_filter("ukf", "gp", folder)
         r = track_flight(ukf, test)
-        t = np.arange(len(r.mean)) * 0.25
+        t = np.arange(len(r.mean)) * test.dt
         sd = np.degrees(np.sqrt(r.cov[:, 5, 5]))
         err = np.degrees(r.error[:, 5])
         m = left[: len(t)]
