@@ -8,6 +8,7 @@ steps with the truth outside the 3-sigma ellipsoid, and the paper's failure flag
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -19,7 +20,7 @@ from scipy.stats import chi2
 
 from estimator_service.filters import GaussianBelief, StepInfo, make_pd
 from estimator_service.flight import Flight
-from estimator_service.system import Group, System, wrap_angle
+from estimator_service.system import Group, System
 
 __all__ = [
     "GROUPS",
@@ -36,10 +37,15 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-def _blimp_groups() -> tuple[Group, ...]:
-    from estimator_service.blimp import BLIMP_GROUPS
+@functools.lru_cache(maxsize=1)
+def _blimp() -> System:
+    from estimator_service.blimp import blimp_system
 
-    return BLIMP_GROUPS
+    return blimp_system()
+
+
+def _blimp_groups() -> tuple[Group, ...]:
+    return _blimp().groups
 
 
 #: the blimp's groups as ``{name: (slice, unit factor)}`` (paper units: mm, deg, mm/s, deg/s)
@@ -49,11 +55,7 @@ GROUPS = {g.name: (slice(g.indices[0], g.indices[-1] + 1), g.factor) for g in _b
 def state_error(estimate: FloatArray, truth: FloatArray, system: System | None = None) -> FloatArray:
     """``estimate - truth`` for states ``(T, n)`` with the angle errors wrapped (the blimp's
     Euler angles when ``system`` is None)."""
-    if system is not None:
-        return system.state_error(estimate, truth)
-    e = np.array(estimate - truth, dtype=np.float64)
-    e[:, 3:6] = wrap_angle(e[:, 3:6])
-    return e
+    return (system or _blimp()).state_error(estimate, truth)
 
 
 def group_rms(err: FloatArray, groups: Sequence[Group] | None = None) -> dict[str, float]:

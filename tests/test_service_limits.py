@@ -215,8 +215,35 @@ def test_protocol_document_matches_the_code() -> None:
     assert "`gpbf/@service/<id>/sessions`" in doc and "model_version" in doc
     lim = Limits()
     flags = {
-        "--horizon": lim.horizon_s, "--queue-cap": lim.queue_cap, "--max-controls": lim.max_controls,
-        "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s, "--max-sessions": lim.max_sessions,
+        "--horizon": lim.horizon_s, "--max-gap-steps": lim.max_gap_steps, "--queue-cap": lim.queue_cap,
+        "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
+        "--max-sessions": lim.max_sessions,
     }  # fmt: skip
     for flag, value in flags.items():
         assert re.search(rf"`{flag}`[^|]*\| {re.escape(format(value, 'g'))} ", doc), flag
+
+
+def test_one_input_costs_at_most_max_gap_steps_predictions_whatever_dt() -> None:
+    """A robot with dt = 1 ms: the 60 s horizon alone would allow 60,000 predictions for one
+    frame; max_gap_steps caps it (in process, no zenoh)."""
+    from estimator_service.filters import EKF
+    from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+    from estimator_service.service.session import Session, SessionSettings
+    from estimator_service.system import Sensor, System
+
+    system = System("fast", ("p",), ("u",), (Sensor("pos", ("p",)),), 0.001)
+    filt = EKF(LinearGaussianPrediction(np.eye(1), np.ones((1, 1)), np.full(1, 1e-4)),
+               LinearGaussianObservation(np.eye(1), np.full(1, 1e-2)))  # fmt: skip
+    published: list = []
+    s = Session("fast", "ekf", "gp", SessionSettings(system, Limits(max_gap_steps=50)),
+                lambda *_: filt, lambda kind, p: published.append((kind, decode(p))))  # fmt: skip
+    s.submit("reset", encode({"v": V, "seq": 1, "t": 0.0, "mean": [0.0], "std": [1.0]}))
+    s.submit("camera", encode({"v": V, "seq": 2, "t": 0.04, "ellipse": [0.1]}), extra=0)  # 40 steps
+    s.submit("camera", encode({"v": V, "seq": 3, "t": 30.0, "ellipse": [0.1]}), extra=0)  # 30,000 steps
+    deadline = time.time() + 5
+    while len(published) < 2 and time.time() < deadline:
+        time.sleep(0.01)
+    s.stop()
+    kinds = [(k, m.get("error", "")) for k, m in published]
+    assert kinds[0][0] == "belief" and s.steps == 1
+    assert kinds[1][0] == "error" and "horizon of 0.05 s" in kinds[1][1], kinds

@@ -101,6 +101,11 @@ class StepInfo:
     resampled: bool = False
     gated: bool = False
 
+    def refused(self) -> StepInfo:
+        """This update's report after an innovation gate refused it: the belief is the
+        prediction (``dof`` 0), the refused update's NIS is kept."""
+        return StepInfo(self.nis, 0, False, gated=True)
+
 
 @dataclass(frozen=True)
 class Wrapping:

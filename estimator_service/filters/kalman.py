@@ -195,7 +195,7 @@ class EKF(_GaussianFilter):
             if not f:
                 results.append((b, StepInfo(math.nan, 0, True)))
             elif gate is not None and gate(info):
-                results.append((prior, StepInfo(info.nis, 0, False, gated=True)))
+                results.append((prior, info.refused()))
             else:
                 results.append((post, info))
         return results

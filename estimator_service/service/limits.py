@@ -30,6 +30,10 @@ class Limits:
         An input whose time is more than this after its session's time is rejected (a
         camera frame there would make the session predict ``horizon_s / dt`` steps);
         re-synchronise with a ``reset``. 60 s is 240 blimp steps, about 0.5 s of work.
+    max_gap_steps
+        The same bound in filter steps: for a robot with a short ``dt`` the horizon is
+        ``min(horizon_s, max_gap_steps * dt)``, so one input never costs more than this many
+        predictions.
     queue_cap
         Pending inputs per session. Over it, the oldest pending streaming input (control
         or camera put) is dropped and counted (``dropped`` in ``status``); a query over it
@@ -48,6 +52,7 @@ class Limits:
     """
 
     horizon_s: float = 60.0
+    max_gap_steps: int = 1000
     queue_cap: int = 1024
     max_controls: int = 256
     gate_p: float = 1e-9
@@ -56,7 +61,8 @@ class Limits:
 
     def __post_init__(self) -> None:
         checks = {
-            "horizon_s": self.horizon_s > 0, "queue_cap": self.queue_cap >= 1,
+            "horizon_s": self.horizon_s > 0, "max_gap_steps": self.max_gap_steps >= 1,
+            "queue_cap": self.queue_cap >= 1,
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,

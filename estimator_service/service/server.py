@@ -272,6 +272,12 @@ def build_parser() -> Parser:
         help="seconds an input may lie after its session's time (more: rejected; reset to re-sync)",
     )
     p.add_argument(
+        "--max-gap-steps",
+        type=checked_int(1, 10**7),
+        default=lim.max_gap_steps,
+        help="filter steps an input may lie after its session's time (bounds one input's work)",
+    )
+    p.add_argument(
         "--queue-cap",
         type=checked_int(1, 1_000_000),
         default=lim.queue_cap,
@@ -319,7 +325,13 @@ def main(argv: list[str] | None = None) -> int:
         args.particles,
         args.workers,
         Limits(
-            args.horizon, args.queue_cap, args.max_controls, args.gate_p, args.session_ttl, args.max_sessions
+            horizon_s=args.horizon,
+            max_gap_steps=args.max_gap_steps,
+            queue_cap=args.queue_cap,
+            max_controls=args.max_controls,
+            gate_p=args.gate_p,
+            session_ttl_s=args.session_ttl,
+            max_sessions=args.max_sessions,
         ),
     )
     try:

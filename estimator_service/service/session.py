@@ -221,7 +221,10 @@ class Session:
         self._check_horizon(t)
 
     def _check_horizon(self, t: float) -> None:
-        horizon = self.settings.limits.horizon_s
+        """Bound the predictions one input can cost: ``horizon_s`` and ``max_gap_steps`` of ``dt``."""
+        horizon = min(
+            self.settings.limits.horizon_s, self.settings.limits.max_gap_steps * self.settings.system.dt
+        )
         if self.t is not None and t - self.t > horizon:
             raise ProtocolError(
                 f"field 't': {t} is {t - self.t:.6g} s after the session time {self.t}, beyond the "
@@ -294,7 +297,7 @@ class Session:
         if not gated(info, self.settings.limits.gate_p):
             return belief, info
         self.gated += 1
-        return prior, StepInfo(info.nis, 0, False, gated=True)
+        return prior, info.refused()
 
     def _camera(self, c) -> bytes:
         t0 = time.perf_counter()
