@@ -130,10 +130,11 @@ def collect_flight(
         "base_params": cfg.params.to_dict(),
         "cameras": camera_metadata(env),
     }
+    system = env_system(env)
     env.close()
     ellipses = np.asarray(rows["ellipses"], dtype=np.float64)
     return make_flight(
-        blimp_system(cfg.n_cameras, cfg.dt, cfg.camera_rate_hz),
+        system,
         rows["t"], np.asarray(rows["state"]), np.asarray(rows["control"]),
         ellipses.reshape(len(ellipses), -1), np.asarray(rows["valid"], dtype=bool), rows["episode"], **meta,
     )  # fmt: skip

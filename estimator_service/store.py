@@ -10,8 +10,9 @@ A folder is replaced as a whole, never left mixed: :func:`writing` hands out a s
 folder beside the destination; when the block ends without an error the manifest is
 written and the staging folder is swapped in (the old folder is moved aside and then
 deleted); on an error the staging folder is deleted and the old folder is untouched. A
-process killed mid-write leaves a ``.<name>.staging-*`` folder, which the next
-:func:`writing` of the same destination removes. :func:`check_folder` (used by
+process killed mid-write leaves a ``.<name>.staging-*`` folder, which a later
+:func:`writing` of the same destination removes once it is an hour old (a younger one may
+belong to a training still running). :func:`check_folder` (used by
 everything that loads models to serve or track) refuses a folder without a manifest or
 whose files differ from it; its hash is the ``model_version`` the service reports.
 """
@@ -23,12 +24,13 @@ import json
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from estimator_service.files import atomic_write_text, current_umask
+from estimator_service.files import STALE_AFTER_S, atomic_write_text, current_umask
 from estimator_service.system import System, SystemError
 
 __all__ = [
@@ -84,8 +86,9 @@ def writing(out_dir: str | os.PathLike[str], system: System) -> Iterator[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.exists() and not out.is_dir():
         raise ModelStoreError(f"model folder {os.fspath(out_dir)!r} exists and is not a folder")
-    for stale in out.parent.glob(f".{out.name}.staging-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+    for stale in out.parent.glob(f".{out.name}.staging-*"):  # a training killed outright
+        if time.time() - stale.stat().st_mtime >= STALE_AFTER_S:  # a younger one may be running
+            shutil.rmtree(stale, ignore_errors=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
         yield stage

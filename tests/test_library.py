@@ -103,6 +103,14 @@ def test_model_folder_is_replaced_whole_or_not_at_all(tmp_path: Path) -> None:
         raise RuntimeError("killed mid-train")
     assert (out / "prediction_gp.npz").read_bytes() == b"old" and model_version(out) == v1
     assert [p.name for p in tmp_path.iterdir()] == ["models"]  # no staging folder left
+    killed, running = tmp_path / ".models.staging-killed", tmp_path / ".models.staging-running"
+    killed.mkdir()
+    running.mkdir()
+    os.utime(killed, (0, 0))  # a training killed an hour and more ago
+    with writing(out, system) as stage:
+        (stage / "prediction_gp.npz").write_bytes(b"old")
+    assert not killed.exists() and running.exists()  # a young one may be a training still running
+    running.rmdir()
     (out / "prediction_egp.npz").write_bytes(b"stray")  # a mixed folder
     with pytest.raises(ModelStoreError, match="not in the manifest"):
         check_folder(out)
