@@ -17,6 +17,7 @@ import numpy as np
 from estimator_service.service.client import EstimatorClient, free_port, open_session, spawn_service
 
 WARM_UP = 20  # round trips and steps run before measuring (the service's first ones are slow)
+SERVE_ARGS: list[str] = []  # extra ``gpbf serve`` options for every service started (``--serve-arg``)
 
 
 @contextmanager
@@ -26,7 +27,7 @@ def service_session(models: Path, model: str, trace: Path | None = None) -> Iter
     tracer = (sys.executable, str(Path(__file__).with_name("service_trace.py")), str(trace))
     kw = {} if trace is None else {"command": tracer}
     port = free_port()
-    proc, _ = spawn_service(models, port, "--model", model, merge_stderr=False, **kw)
+    proc, _ = spawn_service(models, port, "--model", model, *SERVE_ARGS, merge_stderr=False, **kw)
     session = open_session([f"tcp/127.0.0.1:{port}"])
     try:
         time.sleep(0.3)
@@ -44,7 +45,9 @@ def fleet_session(models: Path, model: str, n: int = 2) -> Iterator[Any]:
     ports = [free_port() for _ in range(n)]
     join = ("--connect", f"tcp/127.0.0.1:{ports[0]}")
     procs = [
-        spawn_service(models, port, "--model", model, *(join if i else ()), merge_stderr=False)[0]
+        spawn_service(models, port, "--model", model, *(join if i else ()), *SERVE_ARGS, merge_stderr=False)[
+            0
+        ]
         for i, port in enumerate(ports)
     ]
     session = open_session([f"tcp/127.0.0.1:{port}" for port in ports])
@@ -107,6 +110,26 @@ def factor_mb(models: Path, kind: str = "gp") -> float:
     return total / 2**20
 
 
+@contextmanager
+def echo_session(work_s: float, stream_mb: float = 0.0) -> Iterator[Any]:
+    """A zenoh session connected to a bare queryable (``zenoh_echo.py``) in another process."""
+    port = free_port()
+    echo = Path(__file__).with_name("zenoh_echo.py")
+    proc = subprocess.Popen(
+        [sys.executable, str(echo), str(port), str(work_s), str(stream_mb)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert "ready" in proc.stdout.readline()
+    session = open_session([f"tcp/127.0.0.1:{port}"])
+    time.sleep(0.3)
+    try:
+        yield session
+    finally:
+        session.close()
+        proc.stdin.close()
+        proc.wait(timeout=20)
+
+
 def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
     """p50 of (round trip - work) to a bare zenoh queryable doing ``work_ms`` per query, over
     ``n`` queries after ``WARM_UP`` uncounted ones (as the service's round trips).
@@ -114,23 +137,10 @@ def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
     With ``stream_mb`` the work reads that many MB once (then spins for the rest); the
     echo reports how long its work took, and that is what is subtracted.
     """
-    port = free_port()
-    echo = Path(__file__).with_name("zenoh_echo.py")
-    proc = subprocess.Popen(
-        [sys.executable, str(echo), str(port), str(work_ms / 1e3), str(stream_mb)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    assert "ready" in proc.stdout.readline()
-    session = open_session([f"tcp/127.0.0.1:{port}"])
-    time.sleep(0.3)
     out = []
-    try:
+    with echo_session(work_ms / 1e3, stream_mb) as session:
         for _ in range(n + WARM_UP):
             t0 = time.perf_counter()
             reply = session.get("echo/x", payload=b"y" * 150).recv()
             out.append(time.perf_counter() - t0 - float(reply.ok.payload.to_bytes().decode()))
-    finally:
-        session.close()
-        proc.stdin.close()
-        proc.wait(timeout=20)
     return float(np.median(np.array(out[WARM_UP:]) * 1e3))

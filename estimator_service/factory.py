@@ -13,7 +13,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from estimator_service.filters import EKF, PF, UKF
+import numpy as np
+
+from estimator_service.filters import EKF, PF, UKF, GaussianBelief
 from estimator_service.gp import load_gp
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.calibration import (
@@ -37,6 +39,7 @@ __all__ = [
     "build_filter",
     "load_models",
     "make_filter",
+    "warm_up",
 ]
 
 FILTER_KINDS = ("ukf", "ekf", "pf")
@@ -154,3 +157,13 @@ def build_filter(
     with the folder's system description."""
     models = load_models(model_dir, model_kind)
     return make_filter(filter_kind, *models, system=read_system(model_dir), **options)
+
+
+def warm_up(filt: EKF | UKF | PF, system: System) -> None:
+    """One step from ``system``'s prior, so that the models compute their caches (e.g. the
+    exact GP's inverse factors, about a second at paper size) now instead of on a user's
+    first step."""
+    rng = np.random.default_rng(0)
+    prior = GaussianBelief(np.array(system.prior_mean), np.diag(np.square(system.prior_std)))
+    m = system.obs_dim
+    filt.step(filt.initial(prior, rng), np.zeros(system.control_dim), np.zeros(m), np.ones(m, bool), rng)

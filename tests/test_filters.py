@@ -357,3 +357,37 @@ def test_batched_ekf_step_equals_one_blimp_at_a_time() -> None:
         np.testing.assert_allclose(batched[i][0].cov, one_belief.cov, rtol=1e-10, atol=1e-12)
         assert batched[i][1].dof == info.dof == int(valid[i].sum())
         assert not np.array_equal(batched[i][0].mean, beliefs[i].mean)
+
+
+def test_batched_joseph_update_equals_the_single_rule_and_isolates_a_bad_row() -> None:
+    """The stacked update against the one-belief rule (``_kalman_update``, cho_solve), and a
+    row whose innovation covariance is indefinite: it alone is skipped, the others are not."""
+    from estimator_service.filters.batched import joseph_update_many
+    from estimator_service.filters.kalman import _kalman_update
+
+    rng = np.random.default_rng(5)
+    b, n, q = 6, 5, 3
+    mean = rng.normal(size=(b, n))
+    a = rng.normal(size=(b, n, n))
+    cov = a @ a.transpose(0, 2, 1) + 0.1 * np.eye(n)
+    h, r = rng.normal(size=(b, q, n)), rng.normal(size=(b, q))
+    noise = rng.uniform(0.05, 0.2, (b, q))
+    wrap = Wrapping(np.array([0.0, 2 * math.pi, 0, 0, 0]), np.zeros(q))
+
+    def single(i: int):
+        s = h[i] @ cov[i] @ h[i].T + np.diag(noise[i])
+        return _kalman_update(GaussianBelief(mean[i], cov[i]), r[i], s, cov[i] @ h[i].T, wrap, h[i], noise[i])
+
+    for bad in (None, 2):
+        if bad is not None:
+            noise[bad] = -1e6  # S indefinite: the single rule skips the update
+        out = joseph_update_many(mean, cov, r, h, noise, wrap, single)
+        for i in range(b):
+            ref, info = single(i)
+            np.testing.assert_allclose(out[i][0].mean, ref.mean, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(out[i][0].cov, ref.cov, rtol=1e-9, atol=1e-12)
+            assert out[i][1].diverged == info.diverged and out[i][1].dof == info.dof
+            assert out[i][1].nis == pytest.approx(info.nis, rel=1e-9, nan_ok=True)
+        if bad is not None:
+            assert out[bad][1].diverged and np.array_equal(out[bad][0].mean, mean[bad])
+            assert not any(out[i][1].diverged for i in range(b) if i != bad)

@@ -337,3 +337,25 @@ def test_bad_queries_raise(models) -> None:
         gp.predict(np.zeros((4, 3)))
     with pytest.raises(ValueError, match="NaN"):
         gp.predict(np.array([[0.0, np.nan]]))
+
+
+@pytest.mark.parametrize("queries", [1, 40])
+def test_sparse_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(queries: int) -> None:
+    """The sparse GP's stacked ``L^-1`` products against its per-output triangular solves,
+    noise 4e-7 of the signal, 50 pseudo-inputs at training points and queries at and
+    between training points: within rounding of the solve's."""
+    rng = np.random.default_rng(12)
+    x = rng.uniform(-2, 2, (400, 3))
+    y = np.stack([np.sin(x @ np.array([1.0, -0.7, 0.4])), np.cos(x[:, 0])], axis=1)
+    xs, ys = identity_scalers(3, 2)
+    theta = np.array([[math.log(0.9), math.log(1.2), math.log(1.5), 0.0, 0.5 * math.log(4e-7)]] * 2)
+    fast = SparseGP.from_params(x, y, theta, np.stack([x[:50], x[50:100]]), xs, ys)
+    slow = SparseGP(fast.x_scaler, fast.y_scaler, fast.theta, fast.pseudo_inputs, fast.beta,
+                    fast.chol_mm_t, fast.chol_b_t, inverse=False)  # fmt: skip
+    assert fast.inverse_factors() is not None  # well enough conditioned to be used
+    q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
+    v_fast = fast.predict(q, include_noise=False).var
+    v_slow = slow.predict(q, include_noise=False).var
+    assert np.all(v_fast >= 0)
+    np.testing.assert_allclose(v_fast, v_slow, rtol=1e-6, atol=1e-12)
+    np.testing.assert_array_equal(fast.predict(q).mean, slow.predict(q).mean)

@@ -287,3 +287,23 @@ def test_packed_arrays_round_trip_bit_exactly_and_wrong_lengths_are_named() -> N
         parse_reset({"v": V, "seq": 1, "t": 0.0, "mean": pack_array(mean[:11]), "std": [1.0] * 12})
     with pytest.raises(ProtocolError, match="field 'mean' contains NaN"):
         parse_reset({"v": V, "seq": 1, "t": 0.0, "mean": pack_array(np.full(12, np.nan)), "std": [1.0] * 12})
+
+
+def test_warm_up_computes_the_model_caches_before_any_blimp_steps(models, monkeypatch) -> None:
+    """The service warms every filter it builds: the exact GPs' inverse factors (about a
+    second at paper size) are computed then, not in some blimp's first step."""
+    import estimator_service.gp.exact as exact
+    from estimator_service.factory import build_filter, warm_up
+    from estimator_service.store import read_system
+
+    calls = []
+    real = exact.inverse_factor
+    monkeypatch.setattr(exact, "inverse_factor", lambda *a, **k: calls.append(1) or real(*a, **k))
+    filt = build_filter("ekf", "gp", models)
+    assert not calls
+    warm_up(filt, read_system(models))
+    assert calls
+    done = len(calls)
+    belief = GaussianBelief(np.zeros(12), np.eye(12) * 0.01)
+    filt.step(belief, np.zeros(3), np.zeros(10), np.ones(10, bool))  # a blimp's first step
+    assert len(calls) == done

@@ -194,4 +194,4 @@ def normalise_log_weights(logw: FloatArray) -> FloatArray:
 
 
 def finite(*arrays: FloatArray) -> bool:
-    return all(bool(np.all(np.isfinite(a))) for a in arrays)
+    return all(bool(np.isfinite(a).all()) for a in arrays)

@@ -10,6 +10,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
+from estimator_service.filters.batched import joseph_update_many
 from estimator_service.filters.common import (
     GaussianBelief,
     StepInfo,
@@ -165,13 +166,24 @@ class EKF(_GaussianFilter):
         if rows.size == 0:
             return results
         obs = self.observation.observe(np.stack([priors[i].mean for i in rows]), jac=True)
-        for j, i in enumerate(rows):  # per blimp: 12 x 12 algebra on its own camera subset
-            idx = np.flatnonzero(valid[i])
-            h, r_noise = obs.jac[j, idx], obs.var[j, idx]
-            r = self._wrap.obs_diff(z[i, idx] - obs.mean[j, idx], idx)
-            cov = priors[i].cov
-            s = h @ cov @ h.T + np.diag(r_noise)
-            results[i] = _kalman_update(priors[i], r, s, cov @ h.T, self._wrap, h, r_noise)
+        groups: dict[bytes, list[int]] = {}
+        for j, i in enumerate(rows):
+            groups.setdefault(valid[i].tobytes(), []).append(j)
+        for members in groups.values():  # blimps that saw the same entries: one batched update
+            j = np.array(members)
+            idx = np.flatnonzero(valid[rows[j[0]]])
+            h, r_noise = obs.jac[j][:, idx], obs.var[j][:, idx]
+            r = self._wrap.obs_diff(z[rows[j]][:, idx] - obs.mean[j][:, idx], idx)
+            mean = np.stack([priors[i].mean for i in rows[j]])
+            cov = np.stack([priors[i].cov for i in rows[j]])
+
+            def single(b: int, r=r, h=h, r_noise=r_noise, cov=cov, i=rows[j]) -> tuple:
+                s = h[b] @ cov[b] @ h[b].T + np.diag(r_noise[b])
+                return _kalman_update(priors[i[b]], r[b], s, cov[b] @ h[b].T, self._wrap, h[b], r_noise[b])
+
+            out = joseph_update_many(mean, cov, r, h, r_noise, self._wrap, single)
+            for i, res in zip(rows[j], out, strict=True):
+                results[i] = res
         return results
 
     def step_many(

@@ -26,7 +26,13 @@ from estimator_service.gp.base import (
 from estimator_service.gp.exact import unscale
 from estimator_service.gp.hyper import initial_thetas, optimize_theta, theta_bounds
 from estimator_service.gp.kernel import CrossKernel, split_theta, sq_dist
-from estimator_service.gp.linalg import chol_solve, robust_cholesky, single_threaded_blas, tri_solve
+from estimator_service.gp.linalg import (
+    chol_solve,
+    inverse_factor,
+    robust_cholesky,
+    single_threaded_blas,
+    tri_solve,
+)
 from estimator_service.reprs import short_repr
 
 __all__ = ["SparseGP", "fit_sparse", "sparse_nll"]
@@ -113,6 +119,13 @@ class SparseGP:
         ``A^-1 K_mn Lambda^-1 y`` (mean weights, ``A = K_mm + K_mn Lambda^-1 K_nm``).
     chol_mm_t, chol_b_t: (P, m, m)
         Transposed lower Cholesky factors of ``K_mm`` and of ``B = L_m^-1 A L_m^-T``.
+    inverse: bool
+        Predictive variances from the explicit inverse factors of both (computed once,
+        on the first variance request, when every output's factors are well conditioned;
+        see :func:`~estimator_service.gp.linalg.inverse_factor`): two stacked matrix
+        products for all outputs instead of two triangular solves per output (one EKF step
+        0.56 -> 0.2 ms per model call; ``tests/test_gp.py`` bounds the difference on a
+        near-noiseless GP).
     """
 
     __repr__ = short_repr
@@ -125,13 +138,30 @@ class SparseGP:
     chol_mm_t: FloatArray
     chol_b_t: FloatArray
     kind: str = "sparse"
+    inverse: bool = True
 
     _kernel: CrossKernel = field(init=False, repr=False)
+    _inv: list = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         for arr in (self.theta, self.pseudo_inputs, self.beta, self.chol_mm_t, self.chol_b_t):
             arr.flags.writeable = False
         object.__setattr__(self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta))
+        object.__setattr__(self, "_inv", [])  # filled on the first variance request
+
+    def inverse_factors(self) -> tuple[FloatArray, FloatArray] | None:
+        """``L_m^-1`` and ``L_B^-1``, each ``(P, m, m)``, or None where the solves are kept
+        (some output's factor is too ill-conditioned for the product to match them)."""
+        if not self._inv:  # once; a race only computes the same factors twice
+            lm = [inverse_factor(t.T) for t in self.chol_mm_t]
+            lb = [inverse_factor(t.T) for t in self.chol_b_t]
+            both = None
+            if all(f is not None for f in lm + lb):
+                both = (np.stack(lm), np.stack(lb))
+                for f in both:
+                    f.flags.writeable = False
+            self._inv[:] = [both]
+        return self._inv[0]
 
     @classmethod
     def from_params(
@@ -173,7 +203,9 @@ class SparseGP:
         self, xs: FloatArray, return_var: bool, return_jac: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
-        with single_threaded_blas():  # m x m work: a second BLAS thread only contends
+        if not return_var or (self.inverse and self.inverse_factors() is not None):
+            return self._latent(xs, return_var, return_jac)  # a few stacked products
+        with single_threaded_blas():  # m x m solves: a second BLAS thread only contends
             return self._latent(xs, return_var, return_jac)
 
     def _latent(
@@ -183,6 +215,12 @@ class SparseGP:
         var = None
         if return_var:
             sf2 = np.exp(2.0 * self.theta[:, -2])
+            inv = self.inverse_factors() if self.inverse else None
+            if inv is not None:  # every output at once: (P, m, m) @ (P, m, M)
+                w = inv[0] @ ks.transpose(0, 2, 1)
+                wb = inv[1] @ w
+                var = sf2 - np.einsum("pmq,pmq->qp", w, w) + np.einsum("pmq,pmq->qp", wb, wb)
+                return mean, np.maximum(var, 0.0, out=var), jac
             var = np.empty_like(mean)
             for p in range(self.output_dim):  # one BLAS-3 solve pair per output, all queries
                 w = tri_solve(self.chol_mm_t[p].T, ks[p].T, overwrite_b=True)

@@ -111,15 +111,17 @@ def _vector(val: Any, name: str, size: int) -> FloatArray:
     if not isinstance(val, (list, tuple)) or len(val) != size:
         got = len(val) if isinstance(val, (list, tuple)) else type(val).__name__
         raise ProtocolError(f"field '{name}' must be a list of {size} numbers, got {got}")
+    if all((type(x) is float or type(x) is int) and -MAX_ABS <= x <= MAX_ABS for x in val):
+        return np.array(val, dtype=np.float64)  # plausible numbers (NaN fails the comparison)
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in val):
         raise ProtocolError(f"field '{name}' must contain numbers only")
     return _plausible(np.asarray(val, dtype=np.float64), name)
 
 
 def _plausible(arr: FloatArray, name: str) -> FloatArray:
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ProtocolError(f"field '{name}' contains NaN or Inf")
-    if np.any(np.abs(arr) > MAX_ABS):
+    if (np.abs(arr) > MAX_ABS).any():
         raise ProtocolError(f"field '{name}' has a value beyond +-{MAX_ABS:g}")
     return arr
 

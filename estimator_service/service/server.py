@@ -25,7 +25,7 @@ from typing import Any
 import zenoh
 
 from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
-from estimator_service.factory import load_models, make_filter
+from estimator_service.factory import load_models, make_filter, warm_up
 from estimator_service.service import keys
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
 from estimator_service.service.limits import Limits
@@ -93,9 +93,9 @@ class EstimatorService:
                 if model not in self._models:
                     self._models[model] = load_models(self.config.model_dir, model)
                 opts = {"n_particles": self.config.n_particles} if filter_name == "pf" else {}
-                self._filters[key] = make_filter(
-                    filter_name, *self._models[model], system=self.system, **opts
-                )
+                filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
+                warm_up(filt, self.system)  # caches now, not in a blimp's first step
+                self._filters[key] = filt
             return self._filters[key]
 
     def _publish(self, blimp: str, kind: str, payload: bytes) -> None:

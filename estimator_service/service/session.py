@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from estimator_service.filters import GaussianBelief, StepInfo
+from estimator_service.filters.common import finite
 from estimator_service.service.limits import ControlLog, Limits, gated
 from estimator_service.service.protocol import (
     MSGPACK,
@@ -252,7 +253,7 @@ class Session:
         """Adopt the new belief (only after everything succeeded) and encode it (the caller
         replies with it and publishes it)."""
         g = self._filter.gaussian(belief)
-        if not (np.all(np.isfinite(g.mean)) and np.all(np.isfinite(g.cov))):
+        if not finite(g.mean, g.cov):
             raise ProtocolError("filter produced a non-finite belief; input rejected")
         self._belief, self.t = belief, t
         self.steps += 1
