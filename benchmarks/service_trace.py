@@ -42,16 +42,17 @@ class _TimedQuery:
 
 def _patch() -> None:
     on_query = server.EstimatorService._on_query
-    run_one, step = session.Session._run_one, session.Session._step
+    answer, step = session.Session.answer, session.Session._step
 
     def timed_on_query(self, query) -> None:
         NOW["callback"] = time.perf_counter()
         on_query(self, query)
 
-    def timed_run_one(self, kind, payload, query, extra) -> None:
+    def timed_answer(self, job, compute) -> None:
         NOW["worker"] = time.perf_counter()
+        kind, payload, query, extra = job
         timed = kind == "step" and query is not None
-        run_one(self, kind, payload, _TimedQuery(query) if timed else query, extra)
+        answer(self, (kind, payload, _TimedQuery(query) if timed else query, extra), compute)
         if timed:
             ROWS.append([NOW[k] for k in ("callback", "worker", "step_start", "step_end", "replied")])
 
@@ -62,7 +63,7 @@ def _patch() -> None:
         return out
 
     server.EstimatorService._on_query = timed_on_query
-    session.Session._run_one = timed_run_one
+    session.Session.answer = timed_answer
     session.Session._step = timed_step
 
 

@@ -27,10 +27,11 @@ import zenoh
 from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
 from estimator_service.factory import load_models, make_filter, warm_up
 from estimator_service.service import keys
+from estimator_service.service.batching import step_together
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
 from estimator_service.service.limits import Limits
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
-from estimator_service.service.session import Session, SessionSettings, step_together
+from estimator_service.service.session import Session, SessionSettings
 from estimator_service.service.workers import WorkerPool
 from estimator_service.store import model_version, read_system
 

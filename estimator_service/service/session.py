@@ -10,7 +10,6 @@ stays as it was.
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -21,6 +20,7 @@ import numpy as np
 
 from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
+from estimator_service.service.inbox import BATCH, Inbox, Job
 from estimator_service.service.limits import ControlLog, Limits, gated
 from estimator_service.service.protocol import (
     MSGPACK,
@@ -37,9 +37,7 @@ from estimator_service.service.protocol import (
 from estimator_service.service.workers import WorkerPool
 from estimator_service.system import System
 
-__all__ = ["Session", "SessionSettings", "WorkerPool", "step_together"]
-
-BATCH = 32  # inputs a worker takes from one session before giving others a turn
+__all__ = ["Session", "SessionSettings"]
 
 
 @dataclass(frozen=True)
@@ -72,50 +70,45 @@ class Session:
     rejected: int = 0
     late: int = 0
     batched: int = 0
-    dropped: int = 0
     gated: int = 0
     t: float | None = None
     pool: WorkerPool | None = None
-    _pending: deque = field(default_factory=deque)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-    _scheduled: bool = False
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
     _nis: list = field(default_factory=lambda: [0.0, 0])  # running sum of NIS/dof, count
 
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
         self._controls = ControlLog(self.settings.limits.max_controls, self.settings.system.control_dim)
-        self.last_active = time.monotonic()
+        self._inbox = Inbox(self.settings.limits.queue_cap, self._dropped)
         sys_ = self.settings.system
         prior = GaussianBelief(np.array(sys_.prior_mean), np.diag(np.square(sys_.prior_std)))
         self._install(prior, self.seed)
         self._own_pool = self.pool is None
         if self.pool is None:
+            from estimator_service.service.batching import step_together
+
             self.pool = WorkerPool(1, step_together)
 
     # -- called from zenoh callbacks: enqueue only --------------------------------------------
     def submit(self, kind: str, payload: bytes, query: Any = None, extra: Any = None) -> None:
         """Queue an input; at the queue cap the oldest pending one is dropped (O(1))."""
-        self.last_active = time.monotonic()
-        cap = self.settings.limits.queue_cap
-        with self._lock:
-            dropped = self._pending.popleft() if len(self._pending) >= cap else None
-            self._pending.append((kind, payload, query, extra))
-            wake, self._scheduled = not self._scheduled, True
-        if dropped is not None:
-            self.dropped += 1
-            if dropped[2] is not None:
-                text = f"session queue full ({cap} inputs): dropped"
-                dropped[2].reply_err(self._error(text, dropped[0]), encoding=MSGPACK)
-                dropped[2].drop()
-        if wake:
+        if self._inbox.put((kind, payload, query, extra)):
             self.pool.schedule(self)
+
+    def _dropped(self, job: Job) -> None:
+        if job[2] is not None:
+            text = f"session queue full ({self._inbox.cap} inputs): dropped"
+            job[2].reply_err(self._error(text, job[0]), encoding=MSGPACK)
+            job[2].drop()
+
+    @property
+    def dropped(self) -> int:
+        """Inputs dropped because the queue was full."""
+        return self._inbox.dropped
 
     def idle_s(self, now: float | None = None) -> float:
         """Seconds since the last input; 0 while inputs are pending."""
-        with self._lock:
-            busy = bool(self._pending) or self._scheduled
-        return 0.0 if busy else (now or time.monotonic()) - self.last_active
+        return self._inbox.idle_s(now)
 
     def stop(self) -> None:
         if self._own_pool:
@@ -128,37 +121,35 @@ class Session:
         return id(self._filter) if hasattr(self._filter, "step_many") else None
 
     def drain(self) -> None:
-        self._drain()
-
-    def head_step(self) -> tuple | None:
-        return self._head_step()
-
-    # -- worker ----------------------------------------------------------------------------------
-    def _drain(self) -> None:
-        """Run up to :data:`BATCH` pending inputs (called by one worker at a time)."""
+        """Run up to :data:`~estimator_service.service.inbox.BATCH` pending inputs (one
+        worker at a time), then go back on the ready queue if more wait."""
         for _ in range(BATCH):
-            with self._lock:
-                if not self._pending:
-                    self._scheduled = False
-                    return
-                job = self._pending.popleft()
-            self._run_one(*job)
+            if (job := self._inbox.take()) is None:
+                return
+            self.answer(job, lambda job=job: self.handle(job))
+            self.close_job(job)
         self._reschedule()
+
+    def head_step(self) -> Job | None:
+        """Take the next input if it is a lock-step ``step`` (to batch it), else None."""
+        return self._inbox.take_step()
+
+    def close_job(self, job: Job) -> None:
+        """Release a served job's query."""
+        if job[2] is not None:
+            job[2].drop()
 
     def _reschedule(self) -> None:
         """After a worker's turn: back on the ready queue if more inputs wait."""
-        with self._lock:
-            again = bool(self._pending)
-            self._scheduled = again
-        if again:
+        if self._inbox.again():
             self.pool.schedule(self)
 
-    def _run_one(self, kind: str, payload: bytes, query: Any, extra: Any) -> None:
-        self._answer((kind, payload, query, extra), lambda: self._handle(kind, payload, extra))
-        if query is not None:
-            query.drop()
+    def finish(self, job: Job) -> None:
+        """After a batched job: release its query; back on the ready queue if more wait."""
+        self.close_job(job)
+        self._reschedule()
 
-    def _answer(self, job: tuple, compute: Callable[[], bytes | None]) -> None:
+    def answer(self, job: Job, compute: Callable[[], bytes | None]) -> None:
         """Reply to ``job``'s query (if any) with ``compute()``, or reject the input."""
         kind, _, query, _ = job
         try:
@@ -168,35 +159,23 @@ class Session:
             if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
                 self.publish("belief", reply)
         except ProtocolError as exc:
-            self._reject(str(exc), kind, query)
+            self.reject(str(exc), kind, query)
         except Exception as exc:  # a filter failure must not kill the session
-            self._reject(f"{type(exc).__name__}: {exc}", kind, query)
-
-    # -- batched steps (see WorkerPool) ----------------------------------------------------------
-    def _head_step(self) -> tuple | None:
-        """Pop the next input if it is a lock-step ``step`` (to batch it), else None."""
-        with self._lock:
-            if self._pending and self._pending[0][0] == "step":
-                return self._pending.popleft()
-        return None
-
-    def _close_job(self, job: tuple) -> None:
-        """After a batched job: release its query; back on the ready queue if more wait."""
-        if job[2] is not None:
-            job[2].drop()
-        self._reschedule()
+            self.reject(f"{type(exc).__name__}: {exc}", kind, query)
 
     def _error(self, text: str, kind: str) -> bytes:
         return encode({"v": PROTOCOL_VERSION, "blimp": self.blimp, "input": kind, "error": text})
 
-    def _reject(self, text: str, kind: str, query: Any) -> None:
+    def reject(self, text: str, kind: str, query: Any) -> None:
         self.rejected += 1
         msg = self._error(text, kind)
         self.publish("error", msg)
         if query is not None:
             query.reply_err(msg, encoding=MSGPACK)
 
-    def _handle(self, kind: str, payload: bytes, extra: Any) -> bytes | None:
+    def handle(self, job: Job) -> bytes | None:
+        """Serve one input: the reply (a belief or status message) or None (a control)."""
+        kind, payload, _, extra = job
         if kind == "status":
             return self._status()
         if kind == "step":
@@ -262,22 +241,31 @@ class Session:
             self._nis[1] += 1
         ms = (time.perf_counter() - t0) * 1e3
         self._timings.append(ms)
-        return encode_belief(
-            self.blimp,
-            seq,
-            t,
-            g.mean,
-            g.cov,
-            self.filter_name,
-            self.model_name,
-            info.nis,
-            info.dof,
-            info.diverged,
-            ms,
-            service=self.service_id,
-        )
+        return self._message(g, seq, t, info, ms)
 
-    def _prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
+    def _message(self, g: GaussianBelief, seq: int, t: float, info: StepInfo, ms: float) -> bytes:
+        return encode_belief(
+            self.blimp, seq, t, g.mean, g.cov, self.filter_name, self.model_name,
+            info.nis, info.dof, info.diverged, ms, service=self.service_id,
+        )  # fmt: skip
+
+    def commit_batched(self, step: Any, belief: Any, info: StepInfo, t0: float, together: int) -> bytes:
+        """:meth:`_commit` for a step computed in a batch of ``together`` sessions."""
+        self.gated += info.gated  # refused by the gate: the belief is the prediction
+        self.batched += together > 1
+        return self._commit(belief, info, step.seq, step.t, t0)
+
+    @property
+    def filter(self) -> Any:
+        """The session's (shared, immutable) filter."""
+        return self._filter
+
+    @property
+    def belief(self) -> Any:
+        """The current belief, in the filter's own form."""
+        return self._belief
+
+    def prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
         """Decode and check a ``step`` input: the parsed step, ``z`` and ``valid``."""
         s = parse_step(decode(payload), self._sizes, self.settings.system.control_dim)
         if self.t is not None and s.t <= self.t:
@@ -289,7 +277,7 @@ class Session:
 
     def _step(self, payload: bytes) -> bytes:
         t0 = time.perf_counter()
-        s, z, valid = self._prepare_step(payload)
+        s, z, valid = self.prepare_step(payload)
         belief, info = self._gate(*self._update(prior := self._predict(self._belief, s.u), z, valid), prior)
         return self._commit(belief, info, s.seq, s.t, t0)
 
@@ -320,91 +308,21 @@ class Session:
 
     def _reset(self, r) -> bytes:
         if r.filter or r.model:
-            self.filter_name, self.model_name = (
-                r.filter or self.filter_name,
-                r.model or self.model_name,
-            )
+            self.filter_name, self.model_name = r.filter or self.filter_name, r.model or self.model_name
             self._filter = self.make_filter(self.filter_name, self.model_name)
         self._install(GaussianBelief(r.mean, r.cov), r.seed)
         self.t, self.steps, self._nis = r.t, 0, [0.0, 0]
         self._controls.clear()
-        g = self._filter.gaussian(self._belief)
-        return encode_belief(
-            self.blimp,
-            r.seq,
-            r.t,
-            g.mean,
-            g.cov,
-            self.filter_name,
-            self.model_name,
-            math.nan,
-            0,
-            False,
-            0.0,
-            service=self.service_id,
-        )
+        return self._message(self._filter.gaussian(self._belief), r.seq, r.t, StepInfo(), 0.0)
 
     def _status(self) -> bytes:
         ms = np.array(self._timings) if self._timings else np.zeros(1)
-        return encode(
-            {
-                "v": PROTOCOL_VERSION,
-                "blimp": self.blimp,
-                "filter": self.filter_name,
-                "model": self.model_name,
-                "model_version": self.model_version,
-                "steps": self.steps,
-                "rejected": self.rejected,
-                "late": self.late,
-                "dropped": self.dropped,
-                "gated": self.gated,
-                "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
-                "batched": self.batched,
-                "t": self.t,
-                "queue": len(self._pending),
-                "timings": {
-                    "count": len(self._timings),
-                    "step_ms_p50": float(np.median(ms)),
-                    "step_ms_p99": float(np.percentile(ms, 99)),
-                },
-            }
-        )
-
-
-def step_together(batch: list[tuple[Session, tuple]]) -> None:
-    """Run one lock-step ``step`` job of each session in one batched filter call.
-
-    Inputs that fail validation are rejected one by one, exactly as unbatched; if the
-    batched call itself fails, every job runs on its own.
-    """
-    t0 = time.perf_counter()
-    ready = []
-    for s, job in batch:
-        try:
-            ready.append((s, job, s._prepare_step(job[1])))
-        except ProtocolError as exc:
-            s._reject(str(exc), job[0], job[2])
-            s._close_job(job)
-    try:
-        if ready:
-            gate_p = ready[0][0].settings.limits.gate_p
-            results = ready[0][0]._filter.step_many(
-                [s._belief for s, _, _ in ready],
-                np.stack([p[0].u for _, _, p in ready]),
-                np.stack([p[1] for _, _, p in ready]),
-                np.stack([p[2] for _, _, p in ready]),
-                gate=lambda info: gated(info, gate_p),
-            )
-    except Exception:  # fall back: each job alone, with its own error handling
-        for s, job, _ in ready:
-            s._answer(job, lambda s=s, job=job: s._handle(job[0], job[1], job[3]))
-            s._close_job(job)
-        return
-    for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
-        s.gated += info.gated  # refused by the gate: the belief is the prediction
-        s.batched += len(ready) > 1
-        s._answer(
-            job,
-            lambda s=s, step=step, belief=belief, info=info: s._commit(belief, info, step.seq, step.t, t0),
-        )
-        s._close_job(job)
+        return encode({
+            "v": PROTOCOL_VERSION, "blimp": self.blimp, "filter": self.filter_name, "model": self.model_name,
+            "model_version": self.model_version, "steps": self.steps, "rejected": self.rejected,
+            "late": self.late, "dropped": self.dropped, "gated": self.gated,
+            "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
+            "batched": self.batched, "t": self.t, "queue": len(self._inbox),
+            "timings": {"count": len(self._timings), "step_ms_p50": float(np.median(ms)),
+                        "step_ms_p99": float(np.percentile(ms, 99))},
+        })  # fmt: skip

@@ -40,7 +40,7 @@ class WorkerPool:
     Under load a worker takes every session waiting on the ready queue (up to
     :data:`GROUP`); those whose next input is a lock-step ``step`` and that share a
     ``batch_key`` (the same batchable filter, the EKF) go to ``run_batch`` together
-    (:func:`estimator_service.service.session.step_together`: one GP call for all of them
+    (:func:`estimator_service.service.batching.step_together`: one GP call for all of them
     instead of one per blimp).
     """
 
