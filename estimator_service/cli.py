@@ -103,6 +103,9 @@ def run_track(args: argparse.Namespace) -> int:
 
 def add_train_track(sub: argparse._SubParsersAction) -> None:
     """The ``train`` and ``track`` subcommands (shared by ``gpbf``)."""
+    from estimator_service.training import TrainSettings
+
+    d = TrainSettings()  # the defaults have one owner
     t = sub.add_parser("train", help="fit every model kind from logs", description=run_train.__doc__)
     t.add_argument("logs", nargs="+", type=Path, help="flight .npz or CSV log files")
     t.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
@@ -110,24 +113,33 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
         "--out", type=Path, default=Path("out/models"), help="model folder to write (replaced whole)"
     )
     t.add_argument("--kinds", default="", help="comma-separated GP kinds (default: all the system can train)")
-    t.add_argument("--points", type=checked_int(2, 100_000), default=900, help="training points per GP")
     t.add_argument(
-        "--pseudo", type=checked_int(1, 10_000), default=50, help="pseudo-inputs of the sparse GPs"
-    )
-    t.add_argument("--restarts", type=checked_int(1, 100), default=2, help="optimiser restarts per exact GP")
-    t.add_argument(
-        "--max-iter", type=checked_int(1, 100_000), default=100, help="L-BFGS-B iterations per restart"
-    )
-    t.add_argument("--hetero-iterations", type=checked_int(1, 100), default=2, help="EM rounds of the hetGPs")
-    t.add_argument(
-        "--sparse-iter", type=checked_int(1, 100_000), default=120, help="iterations per sparse GP"
+        "--points", type=checked_int(2, 100_000), default=d.n_points, help="training points per GP"
     )
     t.add_argument(
-        "--hyper-points", type=checked_int(0, 100_000), default=300,
+        "--pseudo", type=checked_int(1, 10_000), default=d.n_pseudo, help="pseudo-inputs of the sparse GPs"
+    )
+    t.add_argument(
+        "--restarts", type=checked_int(1, 100), default=d.restarts, help="optimiser restarts per exact GP"
+    )
+    t.add_argument(
+        "--max-iter", type=checked_int(1, 100_000), default=d.max_iter, help="L-BFGS-B iterations per restart"
+    )
+    t.add_argument(
+        "--hetero-iterations",
+        type=checked_int(1, 100),
+        default=d.hetero_iterations,
+        help="EM rounds of the hetGPs",
+    )
+    t.add_argument(
+        "--sparse-iter", type=checked_int(1, 100_000), default=d.sparse_iter, help="iterations per sparse GP"
+    )
+    t.add_argument(
+        "--hyper-points", type=checked_int(0, 100_000), default=d.hyper_points or 0,
         help="exact GPs learn hyperparameters on this many random points, then polish on all (0: all)",
     )  # fmt: skip
     t.add_argument(
-        "--calibration-seconds", type=checked_float(0.0, 1e6), default=60.0,
+        "--calibration-seconds", type=checked_float(0.0, 1e6), default=d.calibration_seconds,
         help="noise calibration on the first log's first SECONDS (at most a quarter of it; 0: none)",
     )  # fmt: skip
     t.add_argument("--seed", type=seed, default=0, help="seed of the subsampling and restarts")

@@ -23,6 +23,7 @@ from estimator_service.models.calibration import (
     NoiseScaledPrediction,
     read_noise_scales,
     read_observation_scales,
+    read_process_scales,
 )
 from estimator_service.models.gp_models import (
     GPObservationModel,
@@ -100,9 +101,11 @@ def apply_calibration(
     """``pred`` and ``obs`` with the noise scales of ``folder/calibration.json`` for ``kind``
     (where there are any); ``process=False`` leaves the prediction noise as it is."""
     scale = read_noise_scales(folder).get(kind, 1.0) if process else 1.0
+    if process and kind in (per_output := read_process_scales(folder)):
+        scale = scale * per_output[kind]
     obs_scale = read_observation_scales(folder).get(kind)
     return (
-        pred if scale == 1.0 else NoiseScaledPrediction(pred, scale),
+        pred if np.all(np.asarray(scale) == 1.0) else NoiseScaledPrediction(pred, scale),
         obs if obs_scale is None else NoiseScaledObservation(obs, obs_scale),
     )
 

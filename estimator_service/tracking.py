@@ -32,6 +32,7 @@ __all__ = [
     "segments",
     "state_error",
     "track_flight",
+    "within_3sigma",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -190,10 +191,19 @@ def score(r: TrackResult) -> dict[str, float]:
     out["nees_var"], out["nis_var"] = consistent_variances(len(nees), r.dof, r.truth.shape[1])
     outside = float(np.mean(nees > chi2.ppf(0.9973, n)))
     out["outside_3sigma"] = outside
+    out["within3"] = within_3sigma(e, r.cov)
     out["failed"] = float(outside > 0.10)
     out["step_ms"] = r.step_s * 1e3
     out["diverged_steps"] = float(np.sum(r.diverged))
     return out
+
+
+def within_3sigma(error: FloatArray, cov: FloatArray) -> float:
+    """Fraction of steps whose error ``(T, n)`` lies within 3 standard deviations of the
+    belief ``cov (T, n, n)`` on every dimension (Gaussian expectation ``0.9973 ** n``: 0.968
+    for the blimp's 12)."""
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    return float(np.mean(np.all(np.abs(error) <= 3.0 * sd, axis=1)))
 
 
 def consistent_variances(steps: int, dof: NDArray[np.int64], state_dim: int = 12) -> tuple[float, float]:

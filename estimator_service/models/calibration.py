@@ -3,10 +3,12 @@
 A GP's predictive variance (and the parametric model's residual variance) describes
 one-step errors of independent transitions. A filter chains them, and unmodelled effects
 that persist over many steps (on the simulated blimp: wind gusts with a 3 s correlation
-time) make every filter overconfident. One scalar per model kind, chosen on training
-flights so that the filter's average NEES matches the state dimension, corrects that
-(:func:`estimator_service.calibrate.calibrate_noise`); it is stored beside the models in
-``calibration.json`` and applied by :func:`estimator_service.factory.load_models`.
+time) make every filter overconfident. Per model kind and state output, a scale chosen on
+a stretch of the training flight that no model saw
+(:func:`estimator_service.calibrate.calibrate_process` and
+:func:`estimator_service.calibrate.calibrate_noise`) corrects that; it is stored beside
+the models in ``calibration.json`` (``noise_scale`` times ``process_noise_scale``) and
+applied by :func:`estimator_service.factory.load_models`.
 
 Observation GPs are overconfident in another way: their variance is smallest on their own
 training frames, and held-out states lie between them (paper-size GP, first held-out blimp
@@ -20,7 +22,6 @@ training flight kept out of the observation training set; one scale per output).
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,7 @@ __all__ = [
     "NoiseScaledPrediction",
     "read_noise_scales",
     "read_observation_scales",
+    "read_process_scales",
     "write_noise_scales",
 ]
 
@@ -52,11 +54,12 @@ class NoiseScaledPrediction:
     __repr__ = short_repr
 
     inner: PredictionModel
-    scale: float
+    scale: float | FloatArray
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.scale) and self.scale > 0):
-            raise ValueError(f"noise scale must be finite and > 0, got {self.scale!r}")
+        s, n = np.asarray(self.scale, dtype=np.float64), self.inner.state_dim
+        if s.ndim > 1 or (s.ndim == 1 and s.shape != (n,)) or not np.all(np.isfinite(s) & (s > 0)):
+            raise ValueError(f"noise scale must be finite and > 0, one number or {n} of them, got {s!r}")
 
     @property
     def state_dim(self) -> int:
@@ -147,20 +150,35 @@ def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatAr
     )
 
 
+def read_process_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:
+    """``{model kind: per-output process-noise scales (n,)}`` from ``folder/calibration.json``
+    (they multiply the one-step variances before the kind's ``noise_scale``)."""
+    return _section(
+        folder,
+        "process_noise_scale",
+        lambda v: np.array(v, dtype=np.float64).reshape(-1),
+        "{kind: [numbers]}",
+    )
+
+
 def write_noise_scales(
     folder: str | os.PathLike[str],
     scales: dict[str, float],
     observation: dict[str, FloatArray] | None = None,
+    process: dict[str, FloatArray] | None = None,
     **details: object,
 ) -> Path:
-    """Merge process-noise ``scales`` and per-output ``observation`` scales into
+    """Merge process-noise ``scales``, per-output ``observation`` and ``process`` scales into
     ``folder/calibration.json`` (written to a temporary file, then renamed)."""
     path = Path(folder) / CALIBRATION_FILE
     merged = {**read_noise_scales(folder), **{k: float(v) for k, v in scales.items()}}
-    obs = {k: v.tolist() for k, v in read_observation_scales(folder).items()}
-    obs.update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (observation or {}).items()})
+    vectors = {}
+    for key, new, read in (("observation_noise_scale", observation, read_observation_scales),
+                           ("process_noise_scale", process, read_process_scales)):  # fmt: skip
+        vectors[key] = {k: v.tolist() for k, v in read(folder).items()}
+        vectors[key].update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (new or {}).items()})
     old = _read(folder).get("details", {})
-    body = {"noise_scale": merged, "observation_noise_scale": obs, "details": {**old, **details}}
+    body = {"noise_scale": merged, **vectors, "details": {**old, **details}}
     return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
 
 
