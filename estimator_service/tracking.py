@@ -169,7 +169,11 @@ def _default_init_std(flight: Flight) -> FloatArray:
 
 def score(r: TrackResult) -> dict[str, float]:
     """RMS errors per state group (paper units), mean log-likelihood of the truth,
-    average NEES and NIS, the fraction of steps outside 3 sigma and a failure flag.
+    average NEES and NIS/dof with the 95% bands a consistent filter's averages fall in
+    (``nees_lo``/``nees_hi``, ``nis_lo``/``nis_hi``), the fraction of steps outside the
+    3-sigma ellipsoid, the fractions with the truth within 3 sigma on every dimension
+    (``within3``) and on every dimension of each group (``within3_<group>``), and a
+    failure flag.
 
     A run fails when the truth is outside the 3-sigma ellipsoid of the estimate
     (chi-square 99.73% with ``n`` degrees of freedom) on more than 10% of the steps.
@@ -189,9 +193,14 @@ def score(r: TrackResult) -> dict[str, float]:
     has = r.dof > 0
     out["nis_per_dof"] = float(np.mean(r.nis[has] / r.dof[has])) if has.any() else math.nan
     out["nees_var"], out["nis_var"] = consistent_variances(len(nees), r.dof, r.truth.shape[1])
+    out["nees_lo"], out["nees_hi"] = consistency_band(float(n), out["nees_var"])  # 95% if consistent
+    out["nis_lo"], out["nis_hi"] = consistency_band(1.0, out["nis_var"])
     outside = float(np.mean(nees > chi2.ppf(0.9973, n)))
     out["outside_3sigma"] = outside
     out["within3"] = within_3sigma(e, r.cov)
+    for g in _blimp_groups() if r.system is None else r.system.groups:
+        cols = list(g.indices)
+        out[f"within3_{g.name}"] = within_3sigma(e[:, cols], r.cov[:, cols][:, :, cols])
     out["failed"] = float(outside > 0.10)
     out["step_ms"] = r.step_s * 1e3
     out["diverged_steps"] = float(np.sum(r.diverged))
