@@ -21,6 +21,7 @@ from estimator_service.cli_args import (
     add_quiet,
     checked_float,
     checked_int,
+    filter_options,
     package_version,
     seed,
 )
@@ -85,8 +86,7 @@ def run_track(args: argparse.Namespace) -> int:
     from estimator_service.tracking import track_flight
 
     flight = load_log(args.log, _system(args))
-    opts = {"n_particles": args.particles} if args.filter == "pf" else {}
-    filt = build_filter(args.filter, args.model, args.models, **opts)
+    filt = build_filter(args.filter, args.model, args.models, **filter_options(args))
     with ProgressBar(f"track {args.filter}/{args.model}", len(flight) - 1, enabled=not args.quiet) as bar:
         result = track_flight(filt, flight, rng=np.random.default_rng(args.seed), on_step=bar.update_to)
     scores = result.scores()

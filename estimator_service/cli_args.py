@@ -12,6 +12,8 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import NoReturn
 
+from estimator_service.filters.adaptive import ADAPT_RATE
+
 __all__ = [
     "DEFAULT_FILTER",
     "DEFAULT_MODEL",
@@ -20,6 +22,7 @@ __all__ = [
     "add_quiet",
     "checked_float",
     "checked_int",
+    "filter_options",
     "package_version",
     "seed",
 ]
@@ -114,3 +117,14 @@ def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = Fa
     p.add_argument("--filter", choices=FILTERS, default=DEFAULT_FILTER, help="Bayes filter")
     p.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL, help="model kind")
     p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")
+    p.add_argument(
+        "--adapt", type=checked_float(0.0, 1.0), default=ADAPT_RATE, metavar="RATE",
+        help="EKF/UKF: inflate the process noise while NIS/dof stays above 1 at this rate (0: off)",
+    )  # fmt: skip
+
+
+def filter_options(args: argparse.Namespace) -> dict[str, object]:
+    """The filter's own options from :func:`add_filter_options`' arguments."""
+    if args.filter == "pf":
+        return {"n_particles": args.particles}
+    return {"adapt_rate": args.adapt}

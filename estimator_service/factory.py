@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator_service.filters import EKF, PF, UKF, GaussianBelief
+from estimator_service.filters.adaptive import ADAPT_RATE
 from estimator_service.gp import load_gp
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.calibration import (
@@ -140,11 +141,17 @@ def make_filter(
     """A filter of ``kind`` (``ekf``, ``ukf``, ``pf``) over the given models.
 
     ``system`` sets the angle handling (``wrapping``); ``options`` go to the filter (e.g.
-    ``alpha`` for the UKF, ``n_particles`` for the PF).
+    ``alpha`` for the UKF, ``n_particles`` for the PF). An EKF or UKF adapts its process
+    noise at :data:`~estimator_service.filters.adaptive.ADAPT_RATE` unless ``adapt_rate``
+    says otherwise (0: the paper's filter).
     """
     if kind not in FILTER_KINDS:
         raise ValueError(f"filter kind must be one of {FILTER_KINDS}, got {kind!r}")
     cls = {"ekf": EKF, "ukf": UKF, "pf": PF}[kind]
+    if kind == "pf" and options.get("adapt_rate"):
+        raise ValueError("adapt_rate: the adaptive process noise is for the EKF and UKF, not the PF")
+    if kind != "pf":
+        options.setdefault("adapt_rate", ADAPT_RATE)
     if system is not None:
         options.setdefault("wrapping", system.wrapping())
     if kind == "pf":  # a 12-D cloud collapses without regularised resampling, see _PF_DEFAULTS

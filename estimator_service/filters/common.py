@@ -27,15 +27,22 @@ DIVERGENCE_P = 1e-9  # an innovation this improbable under chi^2 flags divergenc
 
 @dataclass(frozen=True)
 class GaussianBelief:
-    """``N(mean, cov)``: ``mean (n,)``, ``cov (n, n)``."""
+    """``N(mean, cov)``: ``mean (n,)``, ``cov (n, n)``.
+
+    ``inflation`` is the process-noise factor an adaptive Kalman filter carries from step
+    to step (:mod:`estimator_service.filters.adaptive`); 1 for every other filter.
+    """
 
     mean: FloatArray
     cov: FloatArray
+    inflation: float = 1.0
 
     def __post_init__(self) -> None:
         m, c = np.asarray(self.mean, dtype=np.float64), np.asarray(self.cov, dtype=np.float64)
         if m.ndim != 1 or c.shape != (m.size, m.size):
             raise ValueError(f"belief mean (n,) and cov (n, n) expected, got {m.shape}, {c.shape}")
+        if not (math.isfinite(self.inflation) and self.inflation > 0):
+            raise ValueError(f"belief inflation must be finite and > 0, got {self.inflation!r}")
         object.__setattr__(self, "mean", m)
         object.__setattr__(self, "cov", c)
 

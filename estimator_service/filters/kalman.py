@@ -10,6 +10,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
+from estimator_service.filters.adaptive import MAX_INFLATION, adapted
 from estimator_service.filters.batched import joseph_update_many
 from estimator_service.filters.common import (
     GaussianBelief,
@@ -125,6 +126,8 @@ class EKF(_GaussianFilter):
     observation: ObservationModel
     wrapping: Wrapping | None = None
     name: str = "EKF"
+    adapt_rate: float = 0.0
+    max_inflation: float = MAX_INFLATION
 
     def predict(
         self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
@@ -142,10 +145,11 @@ class EKF(_GaussianFilter):
         out = self.prediction.predict(means, u, jac=True)
         g = np.eye(means.shape[1]) + out.jac
         covs = g @ np.stack([b.cov for b in beliefs]) @ g.transpose(0, 2, 1)
-        covs[:, *np.diag_indices(means.shape[1])] += out.var
+        lam = np.array([b.inflation for b in beliefs])
+        covs[:, *np.diag_indices(means.shape[1])] += out.var * lam[:, None]
         covs = 0.5 * (covs + covs.transpose(0, 2, 1))
         new_means = self._wrap.state_value(means + out.mean)
-        return [GaussianBelief(m, c) for m, c in zip(new_means, covs, strict=True)]
+        return [GaussianBelief(m, c, f) for m, c, f in zip(new_means, covs, lam.tolist(), strict=True)]
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
@@ -182,8 +186,8 @@ class EKF(_GaussianFilter):
                 return _kalman_update(priors[i[b]], r[b], s, cov[b] @ h[b].T, self._wrap, h[b], r_noise[b])
 
             out = joseph_update_many(mean, cov, r, h, r_noise, self._wrap, single)
-            for i, res in zip(rows[j], out, strict=True):
-                results[i] = res
+            for i, (post, info) in zip(rows[j], out, strict=True):
+                results[i] = adapted(post, priors[i], info, self.adapt_rate, self.max_inflation), info
         return results
 
     def step_many(
@@ -249,6 +253,8 @@ class UKF(_GaussianFilter):
     kappa: float = 0.0
     noise: str = "mean"
     name: str = "UKF"
+    adapt_rate: float = 0.0
+    max_inflation: float = MAX_INFLATION
     _w: tuple[FloatArray, FloatArray, float] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -275,8 +281,8 @@ class UKF(_GaussianFilter):
         q = out.var.mean(axis=0) if self.noise == "sigma" else self.prediction.predict(x[:1], u).var[0]
         mean = self._wrap.mean(xk, wm, self._wrap.state)
         dev = self._wrap.state_diff(xk - mean)
-        cov = (dev * wc[:, None]).T @ dev + np.diag(q)
-        return GaussianBelief(mean, 0.5 * (cov + cov.T))
+        cov = (dev * wc[:, None]).T @ dev + np.diag(q * belief.inflation)
+        return GaussianBelief(mean, 0.5 * (cov + cov.T), belief.inflation)
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
@@ -301,4 +307,5 @@ class UKF(_GaussianFilter):
         s = (dz * wc[:, None]).T @ dz + np.diag(r_noise)
         pxz = (dx * wc[:, None]).T @ dz
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zhat, idx)
-        return _kalman_update(prior, r, s, pxz, self._wrap)
+        post, info = _kalman_update(prior, r, s, pxz, self._wrap)
+        return adapted(post, prior, info, self.adapt_rate, self.max_inflation), info

@@ -26,6 +26,7 @@ import zenoh
 
 from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
 from estimator_service.factory import load_models, make_filter, warm_up
+from estimator_service.filters.adaptive import ADAPT_RATE
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
@@ -49,6 +50,7 @@ class ServiceConfig:
     connect: tuple[str, ...] = ()
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
+    adapt_rate: float = ADAPT_RATE
     workers: int = 2
     limits: Limits = field(default_factory=Limits)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
@@ -93,7 +95,10 @@ class EstimatorService:
             if key not in self._filters:
                 if model not in self._models:
                     self._models[model] = load_models(self.config.model_dir, model)
-                opts = {"n_particles": self.config.n_particles} if filter_name == "pf" else {}
+                pf, rate = filter_name == "pf", self.config.adapt_rate
+                opts = (
+                    {"n_particles": self.config.n_particles} if pf else {"adapt_rate": rate} if rate else {}
+                )
                 filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
                 warm_up(filt, self.system)  # caches now, not in a blimp's first step
                 self._filters[key] = filt
@@ -324,6 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         tuple(args.connect),
         args.zenoh_config,
         args.particles,
+        args.adapt,
         args.workers,
         Limits(
             horizon_s=args.horizon,
