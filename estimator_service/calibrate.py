@@ -1,12 +1,12 @@
-"""Noise calibration of trained models on a stretch of the training flight that no model
-was trained on (:func:`calibration_rows`, held out by :mod:`estimator_service.training`).
+"""Noise calibration of trained models on a block of a training flight that the models
+being calibrated were not trained on (:mod:`estimator_service.crossfit` fits them without
+it).
 
 :func:`calibrate_observation` scales each observation output by its mean squared
-standardised residual on those frames, :func:`calibrate_process` each state output of the
-prediction model by its one-step residual on those transitions; :func:`calibrate_noise`
-then picks the process-noise multiplier whose EKF has average NEES nearest the state
-dimension there.
-Both write ``calibration.json`` beside the models
+standardised residual on the block's frames, :func:`calibrate_process` each state output
+of the prediction model by its one-step residual on the block's transitions;
+:func:`calibrate_noise` then matches each output's process noise to the EKF's errors there.
+All write ``calibration.json`` beside the models
 (:mod:`estimator_service.models.calibration`). Angle outputs and the state dimension come
 from the flight's :class:`~estimator_service.system.System`.
 """

@@ -51,7 +51,7 @@ def run_train(args: argparse.Namespace) -> int:
     settings = TrainSettings(
         args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations,
         sparse_iter=args.sparse_iter, hyper_points=args.hyper_points or None,
-        calibration_seconds=args.calibration_seconds,
+        calibration_seconds=args.calibration_seconds, calibration_folds=args.calibration_folds,
     )  # fmt: skip
     avail = available_kinds(flights[0].system)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
@@ -140,7 +140,11 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     t.add_argument(
         "--calibration-seconds", type=checked_float(0.0, 1e6), default=d.calibration_seconds,
-        help="noise calibration on the first log's first SECONDS (at most a quarter of it; 0: none)",
+        help="noise calibration on blocks of SECONDS of the first log (at most a quarter each; 0: none)",
+    )  # fmt: skip
+    t.add_argument(
+        "--calibration-folds", type=checked_int(1, 2), default=d.calibration_folds,
+        help="calibration blocks: 1 (the first log's start) or 2 (its start and end), each an extra fit",
     )  # fmt: skip
     t.add_argument("--seed", type=seed, default=0, help="seed of the subsampling and restarts")
     add_quiet(t)

@@ -23,12 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.calibrate import (
-    calibrate_noise,
-    calibrate_observation,
-    calibrate_process,
-    calibration_rows,
-)
+from estimator_service.crossfit import calibration_blocks, cross_fit
 from estimator_service.factory import ENHANCED_KINDS, MODEL_KINDS, PARAMETRIC_FILE
 from estimator_service.flight import Flight
 from estimator_service.gp import (
@@ -67,15 +62,16 @@ class TrainSettings:
         pseudo-input coordinates). More is not better here: on a held-out blimp block the
         sparse GP-EKF scored aggregate RMS 14.6, 12.3, 13.2 and 13.3 after 60, 120, 200
         and 500 iterations while the marginal likelihood kept improving.
-    calibration_seconds
-        Length of the stretch at the start of the first training flight on which each
-        kind's noise is calibrated (0 skips calibration; at most a quarter of the flight).
-        No model is trained on it: its frames set the observation-noise scales
-        (:func:`calibrate_observation`), its transitions the one-step process-noise scales
-        (:func:`calibrate_process`), and the EKF tracking it matches them per state output
-        (:func:`calibrate_noise`). Measured on a new 90 s flight (GP and sparse GP, 200
-        points, 8-minute training flight): truth within 3 sigma on every dimension on
-        0.82-0.84 of the steps with 60 s, 0.93-0.96 with 120 s.
+    calibration_seconds, calibration_folds
+        Noise calibration by cross-fitting (:mod:`estimator_service.crossfit`; 0 seconds
+        skips it): for each of ``calibration_folds`` blocks of that length of the first
+        training flight (its start, and with 2 its end; each at most a quarter of it), the
+        kinds are fitted again without the block, which then sets the observation-noise
+        scales (:func:`~estimator_service.calibrate.calibrate_observation`), the one-step
+        process-noise scales (:func:`~estimator_service.calibrate.calibrate_process`) and
+        their per-output match to the EKF's errors
+        (:func:`~estimator_service.calibrate.calibrate_noise`); the saved models are
+        trained on everything. Calibration then costs ``calibration_folds`` extra fits.
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all
@@ -91,6 +87,7 @@ class TrainSettings:
     hyper_points: int | None = 300
     polish_iter: int = 15
     calibration_seconds: float = 120.0
+    calibration_folds: int = 2
 
 
 def prediction_data(flights: Sequence[Flight]) -> tuple[FloatArray, FloatArray]:
@@ -179,12 +176,25 @@ def train_models(
 
 def _train_into(out: Path, flights, system: System, kinds, settings: TrainSettings, seed: int,
                 on_progress, exclude) -> dict[str, float]:  # fmt: skip
-    calibration_flight = flights[0]
+    timings = _fit_models(out, flights, system, kinds, settings, seed, on_progress, exclude)
+    blocks = calibration_blocks(flights[0], settings.calibration_seconds, settings.calibration_folds)
+    if blocks:
+        t0 = time.perf_counter()
+
+        def fit(folder: Path, fold_flights: list[Flight]) -> None:
+            _fit_models(folder, fold_flights, system, kinds, settings, seed, None, exclude)
+
+        cross_fit(out, flights, system, kinds, blocks, fit)
+        timings["calibration"] = time.perf_counter() - t0
+    return timings
+
+
+def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettings, seed: int,
+                on_progress, exclude) -> dict[str, float]:  # fmt: skip
+    """Fit and save every kind in ``kinds`` on all of ``flights``; seconds per kind."""
     rng = np.random.default_rng([seed, 0])
     timings: dict[str, float] = {}
     n = system.state_dim
-    held_out = calibration_rows(flights[0], settings.calibration_seconds)
-    flights = [flights[0].select(np.arange(held_out.stop, len(flights[0]))), *flights[1:]]  # no model sees it
     param = None
     if system.parametric is not None and any(k == "param" or k in ENHANCED_KINDS for k in kinds):
         from estimator_service.blimp import fit_parametric, save_parametric
@@ -235,15 +245,6 @@ def _train_into(out: Path, flights, system: System, kinds, settings: TrainSettin
         timings[kind] = time.perf_counter() - t0
         if on_progress:
             on_progress(kind, None)
-    if settings.calibration_seconds > 0:
-        t0 = time.perf_counter()
-        from estimator_service.store import seal
-
-        seal(out, system)  # calibration reads the models through the system description
-        calibrate_observation(calibration_flight, out, kinds, rows=held_out)
-        calibrate_process(calibration_flight, out, kinds, rows=held_out)
-        calibrate_noise(calibration_flight, out, kinds, rows=held_out)
-        timings["calibration"] = time.perf_counter() - t0
     return timings
 
 

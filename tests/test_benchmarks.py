@@ -23,6 +23,10 @@ EXPECTED = {
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",
     },
     "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
+    "bench_consistency.py": {
+        "within3_min", "pf_within3_min", "failed_runs_max", "nees_ratio_min", "nees_ratio_max",
+        "rms_change_max", "gusty_within3_min",
+    },
     "model_swap.py": {
         "param_ang_velocity_deg_s", "gp_pred_param_obs_ang_velocity_deg_s", "gp_yaw_rate_deg_s",
     },
@@ -38,7 +42,7 @@ EXPECTED = {
 
 
 #: scripts whose --quick run is over a minute have a --smoke mode for this test
-SMOKE = {"bench_agents.py", "bench_filters.py", "bench_service.py"}
+SMOKE = {"bench_agents.py", "bench_consistency.py", "bench_filters.py", "bench_service.py"}
 
 
 @pytest.mark.parametrize("script", sorted(EXPECTED))

@@ -81,25 +81,55 @@ def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path
     np.testing.assert_allclose(scaled.scale, chosen, rtol=1e-12)
 
 
-def test_held_out_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight(tmp_path: Path) -> None:
-    """Models trained on a 4-minute flight (the first minute held out of every model and used
-    only to calibrate the noise), tracked on a new flight: the truth lies within 3 sigma on
-    every dimension on most steps (Gaussian expectation 0.968 for 12 dimensions). With the
-    calibration scored on the models' own training data it was 0.695 (GP-EKF) and 0.720
-    (GP-UKF), average NEES 263 and 1.4e8."""
+def test_cross_fitted_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight(tmp_path: Path) -> None:
+    """GP models trained on an 8-minute flight and calibrated by cross-fitting (two 2-minute
+    blocks, each scored with models that never saw it), tracked on a new flight by the
+    factory's filters: the truth lies within 3 sigma on every dimension on at least 90% of
+    the steps (Gaussian expectation 0.968 for 12 dimensions) and the average NEES is near
+    12. (The in-sample calibration before cross-fitting reached 0.901 and 0.920 here too,
+    on this long flight; its failure shows on short ones: 4-minute flight, 1 minute held
+    out, 0.695 and 0.720, NEES 263. The leakage itself is tested below.)"""
     from estimator_service.factory import build_filter
     from estimator_service.tracking import track_flight
 
-    train, test = collect_flight(240, seed=21), collect_flight(90, seed=22)
-    s = TrainSettings(n_points=200, restarts=1, max_iter=40, hyper_points=None, calibration_seconds=60)
+    train, test = collect_flight(480, seed=21), collect_flight(120, seed=22)
+    s = TrainSettings(n_points=200, restarts=1, max_iter=40, hyper_points=None, calibration_seconds=120)
     train_models([train], tmp_path, kinds=["gp"], settings=s)
     for kind in ("ekf", "ukf"):
         filt = build_filter(kind, "gp", tmp_path)
         runs = [
-            track_flight(filt, test, rows=slice(a, a + 120)).scores() for a in range(0, len(test) - 120, 120)
+            track_flight(filt, test, rows=slice(a, a + 120)).scores() for a in range(0, len(test) - 119, 120)
         ]
-        assert np.mean([r["within3"] for r in runs]) >= 0.85, kind
-        assert 0.5 * 12 <= np.mean([r["nees"] for r in runs]) <= 2.0 * 12, kind
+        assert np.mean([r["within3"] for r in runs]) >= 0.9, kind
+        assert 0.5 * 12 <= np.mean([r["nees"] for r in runs]) <= 1.5 * 12, kind
+
+
+def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: Path, monkeypatch) -> None:
+    """Cross-fitting: the saved models see the whole flight; each calibration block is
+    scored only with models fitted without any of its rows."""
+    import estimator_service.crossfit as crossfit
+    import estimator_service.training as training
+
+    fits, scored = [], []
+    real_fit, real_process = training._fit_models, crossfit.calibrate_process
+
+    def fit(out, flights, *args, **kwargs):
+        fits.append((out, set(np.concatenate([f.t for f in flights]).tolist())))
+        return real_fit(out, flights, *args, **kwargs)
+
+    def process(flight, folder, kinds, *, rows):
+        scored.append((folder, set(flight.t[rows].tolist())))
+        return real_process(flight, folder, kinds, rows=rows)
+
+    monkeypatch.setattr(training, "_fit_models", fit)
+    monkeypatch.setattr(crossfit, "calibrate_process", process)
+    flight = collect_flight(120, seed=5)
+    s = TrainSettings(n_points=40, restarts=1, max_iter=3, calibration_seconds=20)
+    train_models([flight], tmp_path, kinds=["param"], settings=s)
+    assert fits[0][1] == set(flight.t.tolist()) and len(fits) == 3 and len(scored) == 2
+    for (fold, seen), (folder, block) in zip(fits[1:], scored, strict=True):
+        assert fold == folder and len(block) == 80 and not seen & block
+    assert "process_noise_scale" in json.loads((tmp_path / CALIBRATION_FILE).read_text())
 
 
 def test_scaled_observation_scales_each_output_variance() -> None:

@@ -171,6 +171,16 @@ def test_cholesky_inverse_matches_solve() -> None:
     np.testing.assert_array_equal(inv, inv.T)
 
 
+def _same_up_to_rounding(fast, slow, q: np.ndarray) -> None:
+    """Variances of the inverse-factor GP ``fast`` within rounding of the solving ``slow``
+    at queries ``q``, none negative, means identical."""
+    v_fast = fast.predict(q, include_noise=False).var
+    v_slow = slow.predict(q, include_noise=False).var
+    assert np.all(v_fast >= 0)
+    np.testing.assert_allclose(v_fast, v_slow, rtol=1e-6, atol=1e-12)
+    np.testing.assert_array_equal(fast.predict(q).mean, slow.predict(q).mean)
+
+
 @pytest.mark.parametrize("queries", [1, 7])
 def test_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(queries: int) -> None:
     """The explicit ``L^-1`` path against the triangular solve, where it is hardest: noise
@@ -186,11 +196,7 @@ def test_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(querie
                    inverse=False)  # fmt: skip
     assert fast.inverse_factors()[0] is not None  # well enough conditioned to be used
     q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
-    v_fast = fast.predict(q, include_noise=False).var
-    v_slow = slow.predict(q, include_noise=False).var
-    assert np.all(v_fast >= 0)
-    np.testing.assert_allclose(v_fast, v_slow, rtol=1e-6, atol=1e-12)
-    np.testing.assert_array_equal(fast.predict(q).mean, slow.predict(q).mean)
+    _same_up_to_rounding(fast, slow, q)
 
 
 def test_inverse_factor_refuses_an_ill_conditioned_factor() -> None:
@@ -354,8 +360,4 @@ def test_sparse_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp
                     fast.chol_mm_t, fast.chol_b_t, inverse=False)  # fmt: skip
     assert fast.inverse_factors() is not None  # well enough conditioned to be used
     q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
-    v_fast = fast.predict(q, include_noise=False).var
-    v_slow = slow.predict(q, include_noise=False).var
-    assert np.all(v_fast >= 0)
-    np.testing.assert_allclose(v_fast, v_slow, rtol=1e-6, atol=1e-12)
-    np.testing.assert_array_equal(fast.predict(q).mean, slow.predict(q).mean)
+    _same_up_to_rounding(fast, slow, q)

@@ -26,6 +26,9 @@ from numpy.typing import NDArray
 from agents.sim import env_frames, env_readings, env_system
 from estimator_service.factory import build_filter
 from estimator_service.filters import GaussianBelief
+from estimator_service.service.limits import Limits, gated_step
+
+GATE_P = Limits().gate_p  # the in-process back end gates as the service does: the same beliefs
 
 __all__ = ["INIT_STD", "VARIANTS", "BeliefObservation", "belief_features", "make_belief_env"]
 
@@ -151,7 +154,7 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._remote = self._client.step(action, env_frames(obs), float(info["t"]))
         elif self._filter is not None:
             z, valid = env_readings(obs, self._system)
-            self._belief, _ = self._filter.step(self._belief, action, z, valid, self._rng)
+            self._belief, _ = gated_step(self._filter, self._belief, action, z, valid, self._rng, GATE_P)
 
     def belief(self) -> GaussianBelief | None:
         """The current Gaussian belief (``None`` for the state and ellipse variants)."""

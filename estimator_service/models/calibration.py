@@ -4,8 +4,8 @@ A GP's predictive variance (and the parametric model's residual variance) descri
 one-step errors of independent transitions. A filter chains them, and unmodelled effects
 that persist over many steps (on the simulated blimp: wind gusts with a 3 s correlation
 time) make every filter overconfident. Per model kind and state output, a scale chosen on
-a stretch of the training flight that no model saw
-(:func:`estimator_service.calibrate.calibrate_process` and
+blocks of the training flight with models fitted without them (cross-fitting,
+:mod:`estimator_service.crossfit`; :func:`estimator_service.calibrate.calibrate_process` and
 :func:`estimator_service.calibrate.calibrate_noise`) corrects that; it is stored beside
 the models in ``calibration.json`` (``noise_scale`` times ``process_noise_scale``) and
 applied by :func:`estimator_service.factory.load_models`.
@@ -15,8 +15,8 @@ training frames, and held-out states lie between them (paper-size GP, first held
 block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
 camera).
 A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
-particles (:func:`estimator_service.calibrate.calibrate_observation` measures it on a stretch of the
-training flight kept out of the observation training set; one scale per output).
+particles (:func:`estimator_service.calibrate.calibrate_observation` measures it on blocks of
+the training flight, with observation models fitted without them; one scale per output).
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ import bisect
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -79,6 +80,21 @@ def gated(info: StepInfo, gate_p: float) -> bool:
     if gate_p <= 0 or info.dof <= 0:
         return False
     return not math.isfinite(info.nis) or info.nis > _threshold(gate_p, info.dof)
+
+
+def gated_step(
+    filt: Any, belief: Any, u: np.ndarray, z: np.ndarray, valid: np.ndarray, rng: np.random.Generator,
+    gate_p: float,
+) -> tuple[Any, StepInfo]:  # fmt: skip
+    """One lock-step step as a service session runs it: predict with ``u``, update with the
+    ``valid`` entries of ``z`` (none: the prediction), and keep the prediction when the
+    innovation fails the gate (reported by :meth:`StepInfo.refused`). In-process users
+    who want the service's beliefs call this instead of ``filt.step``."""
+    prior = filt.predict(belief, u, rng)
+    if not valid.any():
+        return prior, StepInfo()
+    post, info = filt.update(prior, z, valid, rng)
+    return (prior, info.refused()) if gated(info, gate_p) else (post, info)
 
 
 @functools.lru_cache(maxsize=1024)

@@ -21,7 +21,7 @@ import numpy as np
 from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
 from estimator_service.service.inbox import BATCH, Inbox, Job
-from estimator_service.service.limits import ControlLog, Limits, gated
+from estimator_service.service.limits import ControlLog, Limits, gated, gated_step
 from estimator_service.service.protocol import (
     MSGPACK,
     PROTOCOL_VERSION,
@@ -278,7 +278,10 @@ class Session:
     def _step(self, payload: bytes) -> bytes:
         t0 = time.perf_counter()
         s, z, valid = self.prepare_step(payload)
-        belief, info = self._gate(*self._update(prior := self._predict(self._belief, s.u), z, valid), prior)
+        belief, info = gated_step(
+            self._filter, self._belief, s.u, z, valid, self._rng, self.settings.limits.gate_p
+        )
+        self.gated += info.gated
         return self._commit(belief, info, s.seq, s.t, t0)
 
     def _gate(self, belief: Any, info: StepInfo, prior: Any) -> tuple[Any, StepInfo]:
