@@ -30,12 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.sim import collect_flight
-from estimator_service.calibrate import (
-    calibrate_noise,
-    calibrate_observation,
-    calibrate_process,
-    calibration_rows,
-)
+from estimator_service.calibrate import calibrate_all, calibration_rows
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
 from estimator_service.tracking import aggregate_rms, track_flight
@@ -64,10 +59,7 @@ def track(filt, flight: Flight, rng: np.random.Generator) -> dict[str, float]:
 def baseline(train: Flight, folder: Path, kinds: tuple[str, ...], s: TrainSettings) -> None:
     """Models trained on all of ``train``, calibrated in-sample on its start."""
     train_models([train], folder, kinds=list(kinds), settings=dataclasses.replace(s, calibration_seconds=0))
-    rows = calibration_rows(train, s.calibration_seconds)
-    calibrate_observation(train, folder, kinds, rows=rows)
-    calibrate_process(train, folder, kinds, rows=rows)
-    calibrate_noise(train, folder, kinds, rows=rows)
+    calibrate_all(train, folder, kinds, rows=calibration_rows(train, s.calibration_seconds))
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:

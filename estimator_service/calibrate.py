@@ -23,6 +23,7 @@ from estimator_service.flight import Flight
 
 __all__ = [
     "MATCH_ROUNDS",
+    "calibrate_all",
     "calibrate_noise",
     "calibrate_observation",
     "calibrate_process",
@@ -155,3 +156,11 @@ def calibrate_noise(
     write_noise_scales(folder, mean, process={k: v / mean[k] for k, v in chosen.items()},
                        matching=history, calibration_rows=[rows.start, rows.stop])  # fmt: skip
     return chosen
+
+
+def calibrate_all(flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice) -> None:
+    """Observation scales, one-step process scales, then their per-output match to the EKF's
+    errors, all on ``rows`` of ``flight`` (which the models in ``folder`` must not have seen)."""
+    calibrate_observation(flight, folder, kinds, rows=rows)
+    calibrate_process(flight, folder, kinds, rows=rows)
+    calibrate_noise(flight, folder, kinds, rows=rows)

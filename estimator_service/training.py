@@ -72,6 +72,10 @@ class TrainSettings:
         their per-output match to the EKF's errors
         (:func:`~estimator_service.calibrate.calibrate_noise`); the saved models are
         trained on everything. Calibration then costs ``calibration_folds`` extra fits.
+        The 120 s default: with one such block held out of the models (the scheme before
+        cross-fitting), 200-point GP and sparse filters on a new 90 s flight had the truth
+        within 3 sigma on every dimension on 0.82-0.84 of the steps with 60 s, 0.93-0.96
+        with 120 s.
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all

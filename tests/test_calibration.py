@@ -111,18 +111,18 @@ def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: P
     import estimator_service.training as training
 
     fits, scored = [], []
-    real_fit, real_process = training._fit_models, crossfit.calibrate_process
+    real_fit, real_calibrate = training._fit_models, crossfit.calibrate_all
 
     def fit(out, flights, *args, **kwargs):
         fits.append((out, set(np.concatenate([f.t for f in flights]).tolist())))
         return real_fit(out, flights, *args, **kwargs)
 
-    def process(flight, folder, kinds, *, rows):
+    def calibrate(flight, folder, kinds, *, rows):
         scored.append((folder, set(flight.t[rows].tolist())))
-        return real_process(flight, folder, kinds, rows=rows)
+        return real_calibrate(flight, folder, kinds, rows=rows)
 
     monkeypatch.setattr(training, "_fit_models", fit)
-    monkeypatch.setattr(crossfit, "calibrate_process", process)
+    monkeypatch.setattr(crossfit, "calibrate_all", calibrate)
     flight = collect_flight(120, seed=5)
     s = TrainSettings(n_points=40, restarts=1, max_iter=3, calibration_seconds=20)
     train_models([flight], tmp_path, kinds=["param"], settings=s)

@@ -438,3 +438,7 @@ def test_adaptive_ekf_batched_equals_one_at_a_time_and_the_pf_refuses_the_option
         make_filter("pf", PRED, OBS, adapt_rate=0.5)
     with pytest.raises(ValueError, match="inflation"):
         GaussianBelief(PRIOR.mean, PRIOR.cov, 0.0)
+    with pytest.raises(ValueError, match="adapt_rate"):
+        EKF(PRED, OBS, adapt_rate=math.nan)
+    with pytest.raises(ValueError, match="max_inflation"):
+        UKF(PRED, OBS, adapt_rate=0.5, max_inflation=0.5)

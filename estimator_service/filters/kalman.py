@@ -10,7 +10,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from estimator_service.filters.adaptive import MAX_INFLATION, adapted
+from estimator_service.filters.adaptive import MAX_INFLATION, adapted, check_adaptation
 from estimator_service.filters.batched import joseph_update_many
 from estimator_service.filters.common import (
     GaussianBelief,
@@ -128,6 +128,9 @@ class EKF(_GaussianFilter):
     name: str = "EKF"
     adapt_rate: float = 0.0
     max_inflation: float = MAX_INFLATION
+
+    def __post_init__(self) -> None:
+        check_adaptation(self.adapt_rate, self.max_inflation)
 
     def predict(
         self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
@@ -260,6 +263,7 @@ class UKF(_GaussianFilter):
     def __post_init__(self) -> None:
         if self.noise not in ("mean", "sigma"):
             raise ValueError(f"noise must be 'mean' or 'sigma', got {self.noise!r}")
+        check_adaptation(self.adapt_rate, self.max_inflation)
         object.__setattr__(
             self, "_w", sigma_weights(self.prediction.state_dim, self.alpha, self.beta, self.kappa)
         )

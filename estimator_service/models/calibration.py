@@ -37,6 +37,7 @@ __all__ = [
     "CALIBRATION_FILE",
     "NoiseScaledObservation",
     "NoiseScaledPrediction",
+    "read_details",
     "read_noise_scales",
     "read_observation_scales",
     "read_process_scales",
@@ -148,6 +149,11 @@ def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatAr
         lambda v: np.array(v, dtype=np.float64).reshape(-1),
         "{kind: [numbers]}",
     )
+
+
+def read_details(folder: str | os.PathLike[str]) -> dict:
+    """The ``details`` section of ``folder/calibration.json`` (what each calibration measured)."""
+    return _read(folder).get("details", {})
 
 
 def read_process_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:

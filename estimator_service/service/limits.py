@@ -6,6 +6,7 @@ Every limit is configuration (``gpbf serve`` options) and documented in
 
 from __future__ import annotations
 
+import argparse
 import bisect
 import functools
 import math
@@ -16,9 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from estimator_service.cli_args import checked_float, checked_int
 from estimator_service.filters import StepInfo
 
-__all__ = ["ControlLog", "Limits", "gated"]
+__all__ = ["OPTIONS", "ControlLog", "Limits", "add_limit_options", "gated", "gated_step", "limits_from"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,35 @@ class Limits:
             raise ValueError(
                 f"service limits out of range: {', '.join(f'{k}={getattr(self, k)}' for k in bad)}"
             )
+
+
+#: ``gpbf serve`` option, :class:`Limits` field, parser type and help, one row per limit
+OPTIONS = (
+    ("--horizon", "horizon_s", checked_float(0.0, 1e6, low_open=True),
+     "seconds an input may lie after its session's time (more: rejected; reset to re-sync)"),
+    ("--max-gap-steps", "max_gap_steps", checked_int(1, 10**7),
+     "filter steps an input may lie after its session's time (bounds one input's work)"),
+    ("--queue-cap", "queue_cap", checked_int(1, 1_000_000),
+     "pending inputs per session (over it the oldest is dropped and counted)"),
+    ("--max-controls", "max_controls", checked_int(1, 1_000_000), "streamed controls a session remembers"),
+    ("--gate-p", "gate_p", checked_float(0.0, 0.5),
+     "innovation gate: skip an update whose NIS tail probability is below this (0: off)"),
+    ("--session-ttl", "session_ttl_s", checked_float(0.0, 1e9),
+     "seconds without input after which a session is closed (0: never)"),
+    ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
+)  # fmt: skip
+
+
+def add_limit_options(p: argparse.ArgumentParser) -> None:
+    """Every row of :data:`OPTIONS` as a parser option with the :class:`Limits` default."""
+    default = Limits()
+    for flag, name, kind, text in OPTIONS:
+        p.add_argument(flag, dest=name, type=kind, default=getattr(default, name), help=text)
+
+
+def limits_from(args: argparse.Namespace) -> Limits:
+    """The :class:`Limits` of parsed :func:`add_limit_options` arguments."""
+    return Limits(**{name: getattr(args, name) for _, name, _, _ in OPTIONS})
 
 
 def gated(info: StepInfo, gate_p: float) -> bool:

@@ -24,13 +24,13 @@ from typing import Any
 
 import zenoh
 
-from estimator_service.cli_args import Parser, add_filter_options, checked_float, checked_int
+from estimator_service.cli_args import Parser, add_filter_options, checked_int
 from estimator_service.factory import load_models, make_filter, warm_up
 from estimator_service.filters.adaptive import ADAPT_RATE
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
-from estimator_service.service.limits import Limits
+from estimator_service.service.limits import Limits, add_limit_options, limits_from
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings
 from estimator_service.service.workers import WorkerPool
@@ -270,45 +270,7 @@ def build_parser() -> Parser:
     p.add_argument(
         "--workers", type=checked_int(1, 64), default=2, help="worker threads shared by all sessions"
     )
-    lim = Limits()
-    p.add_argument(
-        "--horizon",
-        type=checked_float(0.0, 1e6, low_open=True),
-        default=lim.horizon_s,
-        help="seconds an input may lie after its session's time (more: rejected; reset to re-sync)",
-    )
-    p.add_argument(
-        "--max-gap-steps",
-        type=checked_int(1, 10**7),
-        default=lim.max_gap_steps,
-        help="filter steps an input may lie after its session's time (bounds one input's work)",
-    )
-    p.add_argument(
-        "--queue-cap",
-        type=checked_int(1, 1_000_000),
-        default=lim.queue_cap,
-        help="pending inputs per session (over it the oldest is dropped and counted)",
-    )
-    p.add_argument(
-        "--max-controls",
-        type=checked_int(1, 1_000_000),
-        default=lim.max_controls,
-        help="streamed controls a session remembers",
-    )
-    p.add_argument(
-        "--gate-p",
-        type=checked_float(0.0, 0.5),
-        default=lim.gate_p,
-        help="innovation gate: skip an update whose NIS tail probability is below this (0: off)",
-    )
-    p.add_argument(
-        "--session-ttl",
-        type=checked_float(0.0, 1e9),
-        default=lim.session_ttl_s,
-        help="seconds without input after which a session is closed (0: never)",
-    )
-    p.add_argument("--max-sessions", type=checked_int(1, 1_000_000), default=lim.max_sessions,
-                   help="sessions per service")  # fmt: skip
+    add_limit_options(p)
     p.add_argument(
         "--blas-threads", type=checked_int(0, 256), default=0, help="BLAS threads (0: library default)"
     )
@@ -331,15 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         args.particles,
         args.adapt,
         args.workers,
-        Limits(
-            horizon_s=args.horizon,
-            max_gap_steps=args.max_gap_steps,
-            queue_cap=args.queue_cap,
-            max_controls=args.max_controls,
-            gate_p=args.gate_p,
-            session_ttl_s=args.session_ttl,
-            max_sessions=args.max_sessions,
-        ),
+        limits_from(args),
     )
     try:
         service = EstimatorService(cfg)
