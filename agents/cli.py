@@ -9,6 +9,7 @@ serve     run the estimator as a zenoh network service (same as python -m estima
 train-agent   train a PPO or SAC agent on a chosen observation variant (state, belief, ...)
 eval-agent    run a saved agent: return, task success, belief tracking error
 reproduce     the paper's experiments (Tables 5-10, Fig. 4, consistency) with a markdown report
+gap-sweep     where learned models start to pay: gains over Param against the reality gap
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def _collect(args: argparse.Namespace) -> int:
     with ProgressBar(f"collect ({args.pilot})", enabled=not args.quiet) as bar:
         flight = collect_flight(
             args.minutes * 60, policy=policy, pilot=args.pilot, seed=args.seed, env_id=args.env,
-            progress=lambda k, total: bar.update_to(k, total),
+            env_kwargs=world_kwargs(args), progress=lambda k, total: bar.update_to(k, total),
         )  # fmt: skip
     path = save_flight(flight, args.out)
     frames = flight.valid.sum(axis=0).tolist()
@@ -96,13 +97,48 @@ def _reproduce(args: argparse.Namespace) -> int:
     from agents.experiments.reproduce import ReproduceSettings, reproduce
 
     s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
-    s = replace(s, seed=args.seed)
+    s = replace(s, seed=args.seed, reality=args.reality, reality_strength=args.reality_strength)
     reproduce(args.out, s, progress=not args.quiet)
     print(f"wrote {args.out / 'report.md'}")
     return 0
 
 
+def _gap_sweep(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from agents.experiments.gap_sweep import gap_sweep
+    from agents.experiments.reproduce import ReproduceSettings
+
+    s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
+    gap_sweep(args.out, replace(s, seed=args.seed), tuple(args.strengths), progress=not args.quiet)
+    print(f"wrote {args.out / 'gap_sweep.md'}")
+    return 0
+
+
 ENV_IDS = ("gpbf_env/Blimp-v0", "gpbf_env/BlimpWaypoint-v0")
+
+
+def add_world_options(p: argparse.ArgumentParser) -> None:
+    """``--reality`` and ``--reality-strength``: the simulated world (gpbf_env.reality)."""
+    from gpbf_env.reality import MAX_STRENGTH, PRESETS
+
+    p.add_argument(
+        "--reality", choices=sorted(PRESETS), default="lab",
+        help="simulated world: lab (unmodelled physics, camera latency), clean (the textbook model) "
+        "or drafty (lab with stronger gusts)",
+    )  # fmt: skip
+    p.add_argument(
+        "--reality-strength", type=checked_float(0.0, MAX_STRENGTH), default=None,
+        help="scale on every unmodelled effect (0: the clean world; default: the preset's)",
+    )  # fmt: skip
+
+
+def world_kwargs(args: argparse.Namespace) -> dict[str, object]:
+    """Env keyword arguments of the world options."""
+    out: dict[str, object] = {"reality": args.reality}
+    if args.reality_strength is not None:
+        out["reality_strength"] = args.reality_strength
+    return out
 
 
 def build_parser() -> Parser:
@@ -126,6 +162,7 @@ def build_parser() -> Parser:
     c.add_argument(
         "--agent", type=Path, default=None, help="fly a trained agent (model.zip) instead of the pilot"
     )
+    add_world_options(c)
     add_quiet(c)
     c.set_defaults(func=_collect)
 
@@ -170,8 +207,20 @@ def build_parser() -> Parser:
     )
     r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of under an hour")
     r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
+    add_world_options(r)
     add_quiet(r)
     r.set_defaults(func=_reproduce)
+
+    g = sub.add_parser("gap-sweep", help="GP and EGP gains over Param against the reality strength")
+    g.add_argument("--out", type=Path, default=Path("out/gap_sweep"), help="output folder")
+    g.add_argument("--quick", action="store_true", help="the reproduction's quick sizes")
+    g.add_argument("--seed", type=seed, default=0, help="seed of the flights and the training")
+    g.add_argument(
+        "--strengths", type=checked_float(0.0, 4.0), nargs="+", default=[0.0, 0.5, 1.0, 2.0],
+        help="reality strengths to compare",
+    )  # fmt: skip
+    add_quiet(g)
+    g.set_defaults(func=_gap_sweep)
     return p
 
 

@@ -78,6 +78,9 @@ def collect_flight(
 ) -> Flight:
     """Fly for ``seconds`` of sim time and record; episodes restart after a crash.
 
+    The flight's ``state`` is the env's motion-capture measurement (``info["mocap"]``),
+    the ground truth the paper trained and scored on; ``exact`` is the simulator's state.
+
     Parameters
     ----------
     pilot
@@ -95,14 +98,16 @@ def collect_flight(
     obs, info = env.reset(seed=seed)
     flown = [env.unwrapped.params.to_dict()]  # each episode's parameters (domain randomisation)
     steps = round(seconds / env.unwrapped.config.dt)
-    rows: dict[str, list[Any]] = {k: [] for k in ("t", "state", "control", "ellipses", "valid", "episode")}
+    keys = ("t", "state", "exact", "control", "ellipses", "valid", "episode")
+    rows: dict[str, list[Any]] = {k: [] for k in keys}
     episode = 0
     for k in range(steps + 1):
         action = policy(obs, info) if policy else driver.act(info["state"])
         action = np.zeros(3) if k == steps else np.asarray(action, dtype=np.float64)
         for key, val in (
             ("t", info["t"]),
-            ("state", info["state"]),
+            ("state", info["mocap"]),  # what the lab's motion capture measured, as in the paper
+            ("exact", info["state"]),
             ("control", action),
             ("ellipses", obs["ellipses"]),
             ("valid", obs["valid"]),
@@ -136,5 +141,6 @@ def collect_flight(
     return make_flight(
         system,
         rows["t"], np.asarray(rows["state"]), np.asarray(rows["control"]),
-        ellipses.reshape(len(ellipses), -1), np.asarray(rows["valid"], dtype=bool), rows["episode"], **meta,
+        ellipses.reshape(len(ellipses), -1), np.asarray(rows["valid"], dtype=bool), rows["episode"],
+        exact=np.asarray(rows["exact"]), **meta,
     )  # fmt: skip

@@ -11,12 +11,16 @@ A :class:`Flight` holds, per row (one filter step ``dt`` apart within an episode
 ``episode``    (N,)         episode index; rows of different episodes are not transitions
 ``metadata``   dict         JSON: ``system`` (the :class:`~estimator_service.system.System`),
                             and anything else the recorder wants to keep
+``exact``      (N, n)       optional: the exact state where a simulator knows it (``state``
+                            is then what its measurement system, e.g. simulated motion
+                            capture, reported: what models train on, as on a real robot)
 =============  ===========  =================================================================
 
 On disk: one NumPy ``.npz`` (``allow_pickle=False``) with those keys and ``metadata`` as
-a JSON string (format ``gpbf-flight``, version 2; version-1 files of the blimp simulator,
-which stored ``ellipses (N, C, 5)``, are read too), written atomically. Logs from
-elsewhere come in as CSV (:func:`load_csv`, layout in ``docs/your-robot.md``).
+a JSON string (format ``gpbf-flight``, version 2, ``exact`` stored when present;
+version-1 files of the blimp simulator, which stored ``ellipses (N, C, 5)``, are
+read too), written atomically. Logs from elsewhere come in as CSV (:func:`load_csv`,
+layout in ``docs/your-robot.md``).
 """
 
 from __future__ import annotations
@@ -66,6 +70,7 @@ class Flight:
     valid: NDArray[np.bool_]
     episode: NDArray[np.int64]
     metadata: dict[str, Any]
+    exact: FloatArray | None = None
 
     def __post_init__(self) -> None:
         self.check()  # also caches the parsed system description
@@ -112,8 +117,13 @@ class Flight:
                 raise FlightError(
                     f"{where}: '{key}' has shape {np.shape(getattr(self, key))}, expected {shape}"
                 )
-        for key in ("t", "state", "control"):
-            if not np.all(np.isfinite(getattr(self, key))):
+        if self.exact is not None and np.shape(self.exact) != shapes["state"]:
+            raise FlightError(
+                f"{where}: 'exact' has shape {np.shape(self.exact)}, expected {shapes['state']}"
+            )
+        for key in ("t", "state", "control", "exact"):
+            values = getattr(self, key)
+            if values is not None and not np.all(np.isfinite(values)):
                 raise FlightError(f"{where}: '{key}' has NaN or infinite values")
         if not np.all(np.isfinite(self.z[self.expand_valid()])):
             raise FlightError(f"{where}: 'z' has NaN or infinite values where 'valid' is set")
@@ -140,7 +150,8 @@ class Flight:
 
     def select(self, rows: NDArray[np.intp]) -> Flight:
         """The rows ``rows`` (sorted) as a new flight."""
-        return Flight(*(getattr(self, k)[rows] for k in _KEYS), self.metadata)
+        exact = None if self.exact is None else self.exact[rows]
+        return Flight(*(getattr(self, k)[rows] for k in _KEYS), self.metadata, exact)
 
     def without_readings(self, rows: slice) -> Flight:
         """This flight with no sensor readings in ``rows`` (states, controls kept)."""
@@ -150,9 +161,10 @@ class Flight:
 
 
 def make_flight(
-    system: System, t, state, control, z, valid, episode=None, **metadata: Any
+    system: System, t, state, control, z, valid, episode=None, exact=None, **metadata: Any
 ) -> Flight:  # fmt: skip
-    """A :class:`Flight` from arrays (``valid`` per sensor ``(N, S)``; ``episode`` default 0)."""
+    """A :class:`Flight` from arrays (``valid`` per sensor ``(N, S)``; ``episode`` default 0;
+    ``exact`` the simulator's exact states, if any)."""
     t = np.asarray(t, dtype=np.float64)
     ep = np.zeros(len(t), np.int64) if episode is None else np.asarray(episode, dtype=np.int64)
     meta = {"format": FLIGHT_FORMAT, "version": FLIGHT_FORMAT_VERSION, **metadata, "system": system.to_dict()}
@@ -166,6 +178,7 @@ def make_flight(
         v,
         ep,
         meta,
+        None if exact is None else np.asarray(exact, float),
     )
 
 
@@ -173,6 +186,8 @@ def save_flight(flight: Flight, path: str | os.PathLike[str]) -> Path:
     """Write ``flight`` to ``path`` (``.npz``) atomically."""
     meta = {**flight.metadata, "format": FLIGHT_FORMAT, "version": FLIGHT_FORMAT_VERSION}
     arrays = {k: getattr(flight, k) for k in _KEYS}
+    if flight.exact is not None:
+        arrays["exact"] = flight.exact
     return atomic_savez(path, **arrays, metadata=np.array(json.dumps(meta)))
 
 
@@ -208,6 +223,7 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
         np.asarray(data["valid"]).astype(bool),
         np.asarray(data["episode"]).astype(np.int64),
         meta,
+        np.asarray(data["exact"], dtype=np.float64) if "exact" in data else None,
     )
 
 

@@ -26,6 +26,7 @@ __all__ = [
     "GROUPS",
     "TrackResult",
     "aggregate_rms",
+    "group_mean_norm",
     "group_rms",
     "mean_sd",
     "score",
@@ -66,6 +67,15 @@ def group_rms(err: FloatArray, groups: Sequence[Group] | None = None) -> dict[st
     return {g.name: float(np.sqrt(np.mean(err[:, _columns(g.indices)] ** 2)) * g.factor) for g in gs}
 
 
+def group_mean_norm(err: FloatArray, groups: Sequence[Group] | None = None) -> dict[str, float]:
+    """Mean over steps of the error norm ``(T, n)`` per group, in the group's units (the
+    measure of the paper's Tables 5 and 6, beside :func:`group_rms`)."""
+    gs = _blimp_groups() if groups is None else groups
+    return {
+        g.name: float(np.mean(np.linalg.norm(err[:, _columns(g.indices)], axis=1)) * g.factor) for g in gs
+    }
+
+
 def _columns(indices: tuple[int, ...]) -> slice | list[int]:
     """A slice for consecutive indices (a view: the same summation order as before groups
     were configurable, so scores are bit-identical), else the index list."""
@@ -88,6 +98,9 @@ class TrackResult:
     diverged: (T,) bool
     step_s
         Mean wall time per filter step (s).
+    exact: (T, 12) or None
+        The simulator's exact states, when the flight has them (``truth`` is then the
+        measured ground truth).
     """
 
     mean: FloatArray
@@ -98,6 +111,7 @@ class TrackResult:
     diverged: NDArray[np.bool_]
     step_s: float
     system: System | None = None
+    exact: FloatArray | None = None
 
     @property
     def error(self) -> FloatArray:
@@ -158,6 +172,7 @@ def track_flight(
         np.array(div),
         step_s,
         system,
+        None if fl.exact is None else fl.exact[1:n],
     )
 
 
@@ -173,14 +188,19 @@ def score(r: TrackResult) -> dict[str, float]:
     (``nees_lo``/``nees_hi``, ``nis_lo``/``nis_hi``), the fraction of steps outside the
     3-sigma ellipsoid, the fractions with the truth within 3 sigma on every dimension
     (``within3``) and on every dimension of each group (``within3_<group>``), and a
-    failure flag.
+    failure flag; with the simulator's exact states also the RMS errors against them
+    (``exact_<group>``).
 
     A run fails when the truth is outside the 3-sigma ellipsoid of the estimate
     (chi-square 99.73% with ``n`` degrees of freedom) on more than 10% of the steps.
     """
     e = r.error
     n = e.shape[1]
-    out = group_rms(e, None if r.system is None else r.system.groups)
+    groups = None if r.system is None else r.system.groups
+    out = group_rms(e, groups)
+    if r.exact is not None:
+        exact = group_rms(state_error(r.mean, r.exact, r.system), groups)
+        out.update({f"exact_{k}": v for k, v in exact.items()})
     try:
         ls = np.linalg.cholesky(r.cov)
     except np.linalg.LinAlgError:  # a collapsed particle cloud: factor each step robustly

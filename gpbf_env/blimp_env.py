@@ -11,8 +11,9 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
-from gpbf_env.core import WorldConfig, check_action, initial_state, observe
+from gpbf_env.core import WorldConfig, camera_lag, check_action, initial_state, observe
 from gpbf_env.dynamics import Coeffs, make_coeffs, rk4_step
+from gpbf_env.mocap import AUX_DRAWS, PoseTrack, measure
 from gpbf_env.params import BlimpParams
 from gpbf_env.tasks import hover_start, sample_goals, task_reward
 
@@ -30,7 +31,12 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     centre of gravity below the centre of buoyancy (self-righting), linear and quadratic
     drag, body and fin lift, lagged and saturated fans, and seeded wind gusts, integrated
     with fixed-step RK4. Wall cameras with barrel distortion see the envelope and report
-    the ellipse fitted to its outline, each at 1 Hz and staggered.
+    the ellipse fitted to its outline, each at 1 Hz and staggered. In the default
+    ``reality="lab"`` world the blimp also has what the paper's parametric model leaves
+    out (nonlinear and inflow-dependent fan thrust, fan imbalance, slipstream on the
+    fin, the centre of gravity's inertial coupling, offsets, spin-up and servo slew) and
+    the cameras have latency (:mod:`gpbf_env.reality`); ``reality="clean"`` is the
+    textbook world.
 
     ## Action Space
     ``Box(-1, 1, (3,), float32)``: main-fan thrust (scaled to +-``max_main_thrust`` N,
@@ -48,10 +54,13 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     ## Info
     ``reset`` and ``step`` both return ``info["state"]``, the true 12-D state ``(x, y, z,
-    roll, pitch, yaw, u, v, w, p, q, r)`` (world m, rad, body m/s, body rad/s; the
-    motion-capture ground truth), ``info["t"]``, the sim time (s), ``info["goal"]``, the
+    roll, pitch, yaw, u, v, w, p, q, r)`` (world m, rad, body m/s, body rad/s; exact),
+    ``info["t"]``, the sim time (s), ``info["goal"]``, the
     current goal ``(x, y, z, yaw)``, ``info["waypoint_index"]``, its index among the
-    episode's goals, and ``info["motors"]``, the lagged fan outputs (N, rad, N). ``step``
+    episode's goals, ``info["motors"]``, the lagged fan outputs (N, rad, N), and
+    ``info["mocap"]``, the state as the paper's 120 Hz motion capture measured it
+    (:mod:`gpbf_env.mocap`: pose with 0.5 mm / 0.05 deg noise, velocities from the slope
+    of a 100 ms window, so lagging about 46 ms). ``step``
     adds the reward components ``info["reward_alive" | "reward_distance" |
     "reward_heading" | "reward_control"]``, ``info["distance_m"]``, the distance to the goal
     (m), ``info["success"]``, whether it is within ``reach_radius`` of the goal, and
@@ -80,7 +89,8 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     ## Arguments
     ``task`` ("hover" | "waypoint"), ``dt``, ``substeps``, ``camera_rate_hz``,
     ``n_cameras``, ``pixel_noise``, ``camera_mode`` (``"closed_form"`` or the slow
-    ``"rendered"``), ``image_noise``, ``room``, ``params``, ``randomize`` (all of
+    ``"rendered"``), ``image_noise``, ``room``, ``params``, ``randomize``, ``reality``
+    (``"lab"``, the default, ``"clean"`` or ``"drafty"``) and ``reality_strength`` (all of
     :class:`~gpbf_env.core.WorldConfig`), and ``render_mode`` (``"rgb_array"`` or None).
     """
 
@@ -95,7 +105,11 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self.observation_space = self.config.observation_space()
         self._params: BlimpParams = self.config.params
-        self._coeffs: Coeffs = make_coeffs([self._params], self.config.dt, self.config.substeps, math)
+        self._coeffs: Coeffs = self._make_coeffs(self._params)
+        self._track = PoseTrack(1, self.config.substeps, self.config.dt, self.config.track_depth)
+        self._aux = np.random.default_rng(0)  # replaced at reset
+        self._lag = camera_lag(self.config, self._params)
+        self._mocap = np.zeros(12)
         self._state = [0.0] * 12
         self._motors: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._wind = [0.0, 0.0, 0.0]
@@ -131,13 +145,16 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
             g = _vector_option(options["goal"], None, "goal")
             goals = np.concatenate([g, [0.0]])[None, :4] if g.size == 3 else g.reshape(-1, 4)
         if params is not self._params:
-            self._coeffs = make_coeffs([params], cfg.dt, cfg.substeps, math)
+            self._coeffs = self._make_coeffs(params)
             self._params = params
+            self._lag = camera_lag(cfg, params)
         self._state = [float(v) for v in state]
         self._motors = (0.0, 0.0, 0.0)
         self._wind = list(rng.normal(0.0, params.gust_std, size=3))
         self._step, self._goals, self._goal_index = 0, goals, 0
         self._trail = [state[:3].copy()]
+        self._aux = rng.spawn(1)[0]
+        self._track.reset_rows(np.array([0]), state[None, :])
         obs = self._observe(rng.standard_normal(self.config.noise_size - 3))
         return obs, self._info(None)
 
@@ -145,9 +162,11 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         a = check_action(action)
         cfg = self.config
         cmd = cfg.map_action(a[None, :], self._params)[0]
+        knots: list[list[float]] = []
         self._state, self._motors = rk4_step(
-            self._state, self._motors, cmd.tolist(), self._wind, self._coeffs, math
+            self._state, self._motors, cmd.tolist(), self._wind, self._coeffs, math, knots
         )
+        self._track.push(np.array(knots)[:, :, None])
         noise = self.np_random.standard_normal(cfg.noise_size)
         self._advance_wind(noise[:3])
         self._step += 1
@@ -198,9 +217,20 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         s = p.gust_std * math.sqrt(1.0 - a * a)
         self._wind = [a * w + s * float(zi) for w, zi in zip(self._wind, z, strict=True)]
 
+    def _make_coeffs(self, params: BlimpParams) -> Coeffs:
+        cfg = self.config
+        return make_coeffs([params], cfg.dt, cfg.substeps, math, cfg.strength)
+
     def _observe(self, noise: NDArray[np.float64]) -> ObsType:
+        aux = self._aux.standard_normal(AUX_DRAWS)
+        self._mocap = measure(self._track, aux[None, :])[0]
         frames = self.config.frame_schedule(np.array([self._step]))
-        ell, valid = observe(self.config, np.array([self._state]), frames, noise[None, :], [self.np_random])
+        pose = np.array([self._state])
+        latency, jitter = self._lag
+        if self.config.strength > 0 and frames.any():  # the frame shows the blimp where it was at exposure
+            lag = np.array([[max(latency + jitter * aux[-1], 0.0)]])
+            pose = self._track.at(lag)[0]
+        ell, valid = observe(self.config, pose, frames, noise[None, :], [self.np_random])
         self._last_obs = {"ellipses": ell[0], "valid": valid[0]}
         return {"ellipses": ell[0].copy(), "valid": valid[0].copy()}
 
@@ -211,6 +241,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
             "goal": self._goals[self._goal_index].copy(),
             "waypoint_index": self._goal_index,
             "motors": np.array(self._motors),
+            "mocap": self._mocap.copy(),
         }
         if parts is not None:
             info.update(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -19,10 +20,12 @@ from gpbf_env.camera import (
     outline_ellipses,
 )
 from gpbf_env.imaging import fit_ellipse_image, render_frame
+from gpbf_env.mocap import MOCAP_RATE_HZ, MOCAP_SAMPLES
 from gpbf_env.params import BlimpParams, randomize_params
+from gpbf_env.reality import check_preset, check_strength, lab_effects
 from gpbf_env.tasks import TASKS, RewardWeights
 
-__all__ = ["STATE_NAMES", "WorldConfig", "check_action", "initial_state", "observe"]
+__all__ = ["STATE_NAMES", "WorldConfig", "camera_lag", "check_action", "initial_state", "observe"]
 
 FloatArray = NDArray[np.float64]
 STATE_NAMES = ("x", "y", "z", "roll", "pitch", "yaw", "u", "v", "w", "p", "q", "r")
@@ -58,6 +61,14 @@ class WorldConfig:
         Nominal physical parameters.
     randomize
         Domain randomisation scale (0 disables), see :func:`randomize_params`.
+    reality
+        ``"lab"`` (default: the unmodelled effects U1-U8 and C1 of :class:`BlimpParams`,
+        indoor drafts), ``"clean"`` (the textbook world the paper's parametric model
+        describes) or ``"drafty"`` (lab with the nominal, stronger gusts); see
+        :mod:`gpbf_env.reality`.
+    reality_strength
+        Scale on every unmodelled effect (0 reproduces ``clean`` bit for bit, 1 the lab
+        magnitudes); None takes the preset's.
     """
 
     task: str = "hover"
@@ -72,8 +83,13 @@ class WorldConfig:
     params: BlimpParams = field(default_factory=BlimpParams)
     randomize: float = 0.0
     weights: RewardWeights = field(default_factory=RewardWeights)
+    reality: str = "lab"
+    reality_strength: float | None = None
 
     def __post_init__(self) -> None:
+        check_preset(self.reality)
+        if self.reality_strength is not None:
+            check_strength(self.reality_strength)
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if not (self.dt > 0 and math.isfinite(self.dt)):
@@ -131,11 +147,33 @@ class WorldConfig:
             }
         )
 
+    @property
+    def strength(self) -> float:
+        """The reality strength in force (the preset's unless overridden)."""
+        if self.reality_strength is None:
+            return check_preset(self.reality).strength
+        return float(self.reality_strength)
+
+    @cached_property
+    def world_params(self) -> BlimpParams:
+        """``params`` with the preset's draft level: the episodes' nominal parameters."""
+        scale = check_preset(self.reality).draft_scale
+        if scale == 1.0:
+            return self.params
+        return dataclasses.replace(self.params, gust_std=self.params.gust_std * scale)
+
+    @property
+    def track_depth(self) -> int:
+        """Env steps of past poses kept for motion capture and camera latency."""
+        p, k = self.params, 1.0 + self.randomize
+        lag = max(MOCAP_SAMPLES / MOCAP_RATE_HZ, self.strength * k * (p.camera_latency + 4 * p.camera_jitter))
+        return math.ceil(lag / self.dt) + 1
+
     def draw_params(self, rng: np.random.Generator) -> BlimpParams:
         """The episode's physical parameters (randomised when ``randomize > 0``)."""
         if self.randomize > 0:
-            return randomize_params(self.params, rng, self.randomize)
-        return self.params
+            return randomize_params(self.world_params, rng, self.randomize)
+        return self.world_params
 
     def map_action(self, action: FloatArray, params: BlimpParams) -> FloatArray:
         """Normalised actions ``(N, 3)`` in [-1, 1] to motor commands (N, thrust rad, N)."""
@@ -158,6 +196,14 @@ def _cameras(room: tuple[float, float, float], rate: float, n: int) -> tuple[Cam
     if key not in _CAMERA_CACHE:  # cameras cache their pixel rays: build them once
         _CAMERA_CACHE[key] = default_cameras(room, rate, n)
     return _CAMERA_CACHE[key]
+
+
+def camera_lag(cfg: WorldConfig, params: BlimpParams) -> tuple[float, float]:
+    """Camera latency and its jitter (s) of a blimp with ``params`` in world ``cfg``."""
+    if cfg.strength == 0:
+        return 0.0, 0.0
+    effects = lab_effects(params, cfg.strength)
+    return effects.latency, effects.jitter
 
 
 def check_action(action: object, n: int | None = None) -> FloatArray:
@@ -190,7 +236,9 @@ def observe(
 
     Parameters
     ----------
-    state: (N, 12)
+    state: (N, >= 6)
+        Each blimp's pose ``(x, y, z, roll, pitch, yaw)`` when the frames were exposed
+        (further columns are ignored).
     frames: (N, C) bool
         Cameras delivering a frame this step.
     noise: (N, C * K * 2)

@@ -21,9 +21,17 @@ from typing import Any
 
 import numpy as np
 
+from gpbf_env.lab_dynamics import (
+    LabCoeffs,
+    inflow_loss,
+    lab_rates,
+    make_lab_coeffs,
+    motor_track,
+    thrust_targets,
+)
 from gpbf_env.params import BlimpParams
 
-__all__ = ["Coeffs", "make_coeffs", "rk4_step", "wrap_angle"]
+__all__ = ["Coeffs", "derivative", "make_coeffs", "rk4_step", "wrap_angle"]
 
 Num = Any  # a float, or an (N,) float64 array
 
@@ -49,13 +57,16 @@ class Coeffs:
     decay: tuple[tuple[Num, Num, Num], ...]  # motor lag factor at each half sub-step
     h: float  # RK4 sub-step (s)
     n_sub: int
+    lab: LabCoeffs | None = None  # the unmodelled effects; None in the textbook world
 
 
 def _stack(values: Sequence[float], xp: Any) -> Num:
     return values[0] if xp is math else np.asarray(values, dtype=np.float64)
 
 
-def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, xp: Any) -> Coeffs:
+def make_coeffs(
+    params: Sequence[BlimpParams], dt: float, n_sub: int, xp: Any, strength: float = 0.0
+) -> Coeffs:
     """Derive integration constants for one (``xp=math``) or many (``xp=numpy``) blimps.
 
     Parameters
@@ -66,6 +77,9 @@ def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, xp: Any) -
         Env step (s); controls are held over it.
     n_sub
         RK4 sub-steps per env step.
+    strength
+        Reality strength of the unmodelled effects (:mod:`gpbf_env.reality`); 0 is the
+        textbook world.
     """
     if xp is math and len(params) != 1:
         raise ValueError("scalar dynamics take exactly one BlimpParams")
@@ -101,6 +115,7 @@ def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, xp: Any) -
         decay=decay,
         h=h,
         n_sub=n_sub,
+        lab=make_lab_coeffs(params, strength, dt, n_sub, xp) if strength > 0 else None,
     )
 
 
@@ -109,7 +124,7 @@ def wrap_angle(a: Num, xp: Any) -> Num:
     return a - 2.0 * math.pi * xp.floor((a + math.pi) / (2.0 * math.pi))
 
 
-def _derivative(s: Sequence[Num], mot: Sequence[Num], wind: Sequence[Num], c: Coeffs, xp: Any):
+def derivative(s: Sequence[Num], mot: Sequence[Num], wind: Sequence[Num], c: Coeffs, xp: Any):
     """Time derivative of the 12-D state; paper eq. (30) plus drag, lift and gusts."""
     _, _, _, phi, th, psi, u, v, w, p, q, r = s
     sf, cf = xp.sin(phi), xp.cos(phi)
@@ -123,6 +138,10 @@ def _derivative(s: Sequence[Num], mot: Sequence[Num], wind: Sequence[Num], c: Co
     vr = v - (r12 * wx + r22 * wy + r32 * wz)
     wr = w - (r13 * wx + r23 * wy + r33 * wz)
     thrust, mu, tail = mot
+    if c.lab is not None:
+        thrust, tail = inflow_loss(
+            thrust, mu, tail, (ur, vr, wr), (p, q, r), (c.fan_offset, c.tail_arm), c.lab, xp
+        )
     fx_fan, fz_fan = thrust * xp.cos(mu), thrust * xp.sin(mu)
     d1, d2, e1, e2 = c.d1, c.d2, c.e1, c.e2
     fx = c.net_lift * r31 + fx_fan - (d1[0] + d2[0] * abs(ur)) * ur
@@ -135,13 +154,19 @@ def _derivative(s: Sequence[Num], mot: Sequence[Num], wind: Sequence[Num], c: Co
     m1, m2, m3 = c.m
     j1, j2, j3 = c.j
     tq = (q * sf + r * cf) / ct
-    return (
+    kinematics = (
         r11 * u + r12 * v + r13 * w,
         r21 * u + r22 * v + r23 * w,
         r31 * u + r32 * v + r33 * w,
         p + st * tq,
         q * cf - r * sf,
         tq,
+    )
+    if c.lab is not None:
+        nu = (u, v, w, p, q, r)
+        return (*kinematics, *lab_rates(nu, (fx, fy, fz, tx, ty, tz), fx_fan, tail, (r31, r33), c))
+    return (
+        *kinematics,
         (fx - (q * m3 * w - r * m2 * v)) / m1,
         (fy - (r * m1 * u - p * m3 * w)) / m2,
         (fz - (p * m2 * v - q * m1 * u)) / m3,
@@ -162,6 +187,7 @@ def rk4_step(
     wind: Sequence[Num],
     c: Coeffs,
     xp: Any,
+    knots: list[list[Num]] | None = None,
 ) -> tuple[list[Num], tuple[Num, ...]]:
     """Advance one env step with ``c.n_sub`` fixed RK4 sub-steps.
 
@@ -179,6 +205,9 @@ def rk4_step(
         Constants from :func:`make_coeffs`.
     xp
         :mod:`math` or :mod:`numpy`.
+    knots
+        When given, the state at the start and after every sub-step (``n_sub + 1``
+        states, angles not yet wrapped) is appended to it.
 
     Returns
     -------
@@ -187,18 +216,25 @@ def rk4_step(
     """
     s = list(state)
     h = c.h
+    if c.lab is None:
+        track = [_motors_at(motors, command, k, c) for k in range(2 * c.n_sub + 1)]
+    else:
+        track = motor_track(motors, thrust_targets(command, c.lab), c.decay, c.lab, xp)
+    if knots is not None:
+        knots.append(s)
     for j in range(c.n_sub):
-        m_a = _motors_at(motors, command, 2 * j, c)
-        m_b = _motors_at(motors, command, 2 * j + 1, c)
-        m_c = _motors_at(motors, command, 2 * j + 2, c)
-        k1 = _derivative(s, m_a, wind, c, xp)
-        k2 = _derivative([a + 0.5 * h * b for a, b in zip(s, k1, strict=True)], m_b, wind, c, xp)
-        k3 = _derivative([a + 0.5 * h * b for a, b in zip(s, k2, strict=True)], m_b, wind, c, xp)
-        k4 = _derivative([a + h * b for a, b in zip(s, k3, strict=True)], m_c, wind, c, xp)
+        m_a, m_b, m_c = track[2 * j], track[2 * j + 1], track[2 * j + 2]
+        k1 = derivative(s, m_a, wind, c, xp)
+        k2 = derivative([a + 0.5 * h * b for a, b in zip(s, k1, strict=True)], m_b, wind, c, xp)
+        k3 = derivative([a + 0.5 * h * b for a, b in zip(s, k2, strict=True)], m_b, wind, c, xp)
+        k4 = derivative([a + h * b for a, b in zip(s, k3, strict=True)], m_c, wind, c, xp)
         s = [
             a + (h / 6.0) * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
             for a, b1, b2, b3, b4 in zip(s, k1, k2, k3, k4, strict=True)
         ]
+        if knots is not None:
+            knots.append(s)
+    s = list(s)
     for i in (3, 4, 5):
         s[i] = wrap_angle(s[i], xp)
-    return s, _motors_at(motors, command, 2 * c.n_sub, c)
+    return s, track[-1]

@@ -70,6 +70,51 @@ class BlimpParams:
         Correlation time of the gusts, an Ornstein-Uhlenbeck process (s).
     gravity, air_density
         Standard gravity (m/s^2) and air density (kg/m^3).
+
+    Unmodelled effects
+    ------------------
+    What the paper's parametric model (rigid body, linear fans) leaves out. Each is
+    switched on and scaled by the world's reality strength (:mod:`gpbf_env.reality`); the
+    values below are the strength-1 ``lab`` magnitudes, fixed from physics and
+    datasheet-level figures before any experiment was run (range in brackets).
+
+    thrust_exponent, thrust_dead_band
+        U1: static thrust of a fixed-pitch fan grows as ``|cmd|^gamma`` past a dead band
+        of the motor driver: thrust goes as rotor speed squared and speed roughly
+        linearly with duty above the stall duty, less the motor's speed droop (gamma 1.7
+        [1.5-2]; dead band 0.07 of full command [0.05-0.10]).
+    reverse_main, reverse_tail
+        U1: reverse thrust over forward thrust at the same command: a cambered
+        fixed-pitch blade run backwards (0.6 main [0.5-0.7], 0.8 tail [0.7-0.9], the
+        tail fan's blade is nearly symmetric).
+    inflow_speed
+        U2: momentum theory, thrust falls as ``max(0, 1 - V_axial / V_e)`` with the
+        axial inflow ``V_axial``; ``V_e`` is the fan's static slipstream speed,
+        ``sqrt(2 T / (rho A))`` = 4 m/s for 0.08 N per 9 cm fan (m/s) [3-8].
+    fan_imbalance, fan_half_span
+        U3: the two gondola fans differ by 5 % [3-8] (motor and blade tolerance); they
+        sit ``fan_half_span`` = 0.12 m either side of the centreline, so forward thrust
+        ``T`` gives a yaw moment ``-fan_imbalance * fan_half_span * T``.
+    fin_slipstream
+        U4: the fans' slipstream drags on the lower fin 0.35 m below the centre of
+        buoyancy; about 12 % of forward thrust acts there, a nose-down moment of
+        ``fin_slipstream * max(T_x, 0)`` (m) [0.02-0.06].
+    tail_drop
+        U6: the tail fan sits 0.2 m [0.15-0.3] below the centreline (roll moment).
+    cg_lateral
+        U7: lateral offset of the centre of gravity from ballast placement (m) [0-0.01];
+        a static roll trim. U5 (``cg_below_cb`` in the rigid-body mass matrix) has no
+        constant of its own.
+    tau_spinup
+        U8: fans spin up with this time constant (s) [0.05-0.15] (motor torque) but spin
+        down with ``tau_main`` / ``tau_tail`` (only air drag slows them).
+    servo_rate
+        U8: the vector servo's slew rate under load (rad/s) [2-6]: a geared micro servo
+        at 0.35 s per 60 degrees; the first-order lag ``tau_angle`` still applies.
+    camera_latency, camera_jitter
+        C1: time from exposure to the ellipse reaching the estimator (s): USB frame
+        transfer, background subtraction and the fit, 0.15 s [0.1-0.3] with 0.03 s
+        standard deviation of jitter.
     """
 
     semi_length: float = 0.85
@@ -100,6 +145,20 @@ class BlimpParams:
     gust_tau: float = 3.0
     gravity: float = 9.81
     air_density: float = 1.2
+    thrust_exponent: float = 1.7
+    thrust_dead_band: float = 0.07
+    reverse_main: float = 0.6
+    reverse_tail: float = 0.8
+    inflow_speed: float = 4.0
+    fan_imbalance: float = 0.05
+    fan_half_span: float = 0.12
+    fin_slipstream: float = 0.04
+    tail_drop: float = 0.2
+    cg_lateral: float = 0.004
+    tau_spinup: float = 0.10
+    servo_rate: float = 3.0
+    camera_latency: float = 0.15
+    camera_jitter: float = 0.03
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -109,11 +168,15 @@ class BlimpParams:
                 raise ValueError(f"BlimpParams.{f.name} must be finite, got {value!r}")
         positive = (
             "semi_length semi_diameter mass buoyancy_ratio max_main_thrust max_tail_thrust "
-            "tau_main tau_angle tau_tail gust_tau gravity"
+            "tau_main tau_angle tau_tail gust_tau gravity thrust_exponent reverse_main "
+            "reverse_tail inflow_speed tau_spinup servo_rate"
         ).split()
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"BlimpParams.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("thrust_dead_band", "camera_latency", "camera_jitter", "fan_imbalance"):
+            if not 0 <= getattr(self, name) < 0.5:
+                raise ValueError(f"BlimpParams.{name} must be in [0, 0.5), got {getattr(self, name)!r}")
 
     @property
     def total_mass(self) -> tuple[float, float, float]:

@@ -20,8 +20,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from numpy.typing import NDArray
 
-from gpbf_env.core import WorldConfig, check_action, initial_state, observe
+from gpbf_env.core import WorldConfig, camera_lag, check_action, initial_state, observe
 from gpbf_env.dynamics import make_coeffs, rk4_step
+from gpbf_env.mocap import AUX_DRAWS, PoseTrack, measure
 from gpbf_env.params import BlimpParams
 from gpbf_env.tasks import hover_start, sample_goals, task_reward
 
@@ -71,8 +72,11 @@ class BlimpVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
         n = num_envs
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
+        self._aux = [rng.spawn(1)[0] for rng in self._rngs]  # replaced at reset
         self._params: list[BlimpParams] = [self.config.params] * n
         self._rebuild_coeffs()
+        self._track = PoseTrack(n, self.config.substeps, self.config.dt, self.config.track_depth)
+        self._mocap = np.zeros((n, 12))
         self._state = np.zeros((12, n))
         self._motors = tuple(np.zeros(n) for _ in range(3))
         self._wind = np.zeros((3, n))
@@ -148,9 +152,11 @@ class BlimpVectorEnv(VectorEnv):
         moving = np.flatnonzero(~self._autoreset)
         cfg = self.config
         cmd = np.clip(a, -1.0, 1.0) * self._scale
+        knots: list[list[NDArray[np.float64]]] = []
         state, motors = rk4_step(
-            list(self._state), self._motors, list(cmd.T), list(self._wind), self._coeffs, np
+            list(self._state), self._motors, list(cmd.T), list(self._wind), self._coeffs, np, knots
         )
+        self._track.push(np.array(knots))
         noise = np.zeros((n, cfg.noise_size - 3))
         self._state[:, moving] = np.array(state)[:, moving]
         self._motors = tuple(
@@ -211,7 +217,9 @@ class BlimpVectorEnv(VectorEnv):
 
     # -- helpers -----------------------------------------------------------------------
     def _rebuild_coeffs(self) -> None:
-        self._coeffs = make_coeffs(self._params, self.config.dt, self.config.substeps, np)
+        cfg = self.config
+        self._coeffs = make_coeffs(self._params, cfg.dt, cfg.substeps, np, cfg.strength)
+        self._lag = np.array([camera_lag(cfg, p) for p in self._params]).T
         self._scale = np.array(
             [[p.max_main_thrust, p.max_vector_angle, p.max_tail_thrust] for p in self._params]
         )
@@ -233,9 +241,11 @@ class BlimpVectorEnv(VectorEnv):
             if cfg.task == "hover":
                 self._state[:, i] = hover_start(rng, self._state[:, i], self._goals[i, 0])
             self._wind[:, i] = rng.normal(0.0, params.gust_std, size=3)
+            self._aux[i] = rng.spawn(1)[0]
             noise[j] = rng.standard_normal(cfg.noise_size - 3)
         if changed:
             self._rebuild_coeffs()
+        self._track.reset_rows(rows, self._state[:, rows].T)
         for m in self._motors:
             m[rows] = 0.0
         self._steps[rows] = 0
@@ -256,8 +266,15 @@ class BlimpVectorEnv(VectorEnv):
         self._wind[:, rows] = a * self._wind[:, rows] + s * z.T
 
     def _observe(self, rows: NDArray[np.int64], noise: NDArray[np.float64]) -> dict[str, Any]:
+        aux = np.stack([rng.standard_normal(AUX_DRAWS) for rng in self._aux])  # per-blimp streams
+        self._mocap = measure(self._track, aux)
         frames = self.config.frame_schedule(self._steps)
-        ell, valid = observe(self.config, self._state.T, frames, noise, self._rngs)
+        pose = self._state.T
+        latency, jitter = self._lag
+        if self.config.strength > 0 and frames.any():  # frames show where blimps were at exposure
+            lag = np.maximum(latency + jitter * aux[:, -1], 0.0)
+            pose = self._track.at(lag[None, :])[0]
+        ell, valid = observe(self.config, pose, frames, noise, self._rngs)
         if self.render_mode is not None:
             self._last_obs = {"ellipses": ell.copy(), "valid": valid.copy()}
         return {"ellipses": ell, "valid": valid}
@@ -292,6 +309,7 @@ class BlimpVectorEnv(VectorEnv):
             "goal": self._goals[np.arange(n), self._goal_index].copy(),
             "waypoint_index": self._goal_index.copy(),
             "motors": np.stack(self._motors, axis=1),
+            "mocap": self._mocap.copy(),
         }
         info: dict[str, NDArray[Any]] = {}
         for key, value in values.items():

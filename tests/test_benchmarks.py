@@ -22,7 +22,7 @@ EXPECTED = {
         "ekf_ms", "ukf_ms", "pf_exact_ms", "pf_sparse_ms",
         "speedup_ekf", "speedup_ukf", "speedup_pf_exact", "speedup_pf_sparse",
     },
-    "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s"},
+    "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s", "lab_single_env_steps_per_s"},
     "bench_consistency.py": {
         "within3_min", "pf_within3_min", "failed_runs_max", "nees_ratio_min", "nees_ratio_max",
         "rms_change_max", "gusty_within3_min",

@@ -88,11 +88,14 @@ def test_cross_fitted_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight
     the steps (Gaussian expectation 0.968 for 12 dimensions) and the average NEES is near
     12. (The in-sample calibration before cross-fitting reached 0.901 and 0.920 here too,
     on this long flight; its failure shows on short ones: 4-minute flight, 1 minute held
-    out, 0.695 and 0.720, NEES 263. The leakage itself is tested below.)"""
+    out, 0.695 and 0.720, NEES 263. The leakage itself is tested below.) Measured in the
+    clean world, where this was established; the lab world's figure is in issue 19's note."""
     from estimator_service.factory import build_filter
     from estimator_service.tracking import track_flight
 
-    train, test = collect_flight(480, seed=21), collect_flight(120, seed=22)
+    clean = {"reality": "clean"}
+    train = collect_flight(480, seed=21, env_kwargs=clean)
+    test = collect_flight(120, seed=22, env_kwargs=clean)
     s = TrainSettings(n_points=200, restarts=1, max_iter=40, hyper_points=None, calibration_seconds=120)
     train_models([train], tmp_path, kinds=["gp"], settings=s)
     for kind in ("ekf", "ukf"):
@@ -163,7 +166,7 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
         r = fl.z[v, j] - out.mean[:, j]
         if j % 5 == 4:
             r = (r + np.pi / 2) % np.pi - np.pi / 2
-        assert chosen[j] == pytest.approx(np.mean(r * r / out.var[:, j]), rel=1e-9)
+        assert chosen[j] == pytest.approx(min(np.mean(r * r / out.var[:, j]), 100.0), rel=1e-9)  # cap 100
     calibrate_observation(flight, tmp_path, ["param"], rows=rows)  # the default floor 1 never narrows
     _, obs = load_models(tmp_path, "param")
     assert isinstance(obs, NoiseScaledObservation)

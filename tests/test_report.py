@@ -29,14 +29,14 @@ def test_checks_use_table_7_measure_for_the_20_percent_claim() -> None:
         "ukf/egp": _row(16.0, 0.8, 14.0, 0.9),  # 35%
         "ukf/sparse": _row(21.0, 1.1, 15.0, 1.1, step=1.0),
     }
-    verdicts = {claim.split(" (")[0]: ok for claim, ok in _filter_checks(tr, "ukf")}
+    verdicts = {claim.split(" (")[0]: ok for _, claim, ok in _filter_checks(tr, "ukf")}
     assert verdicts == {
         "UKF: GP improves over Param by >= 20%": False,
         "UKF: EGP at least as good as GP": True,
         "UKF: sparse within 10% of exact GP RMS and >= 5x faster": True,
     }
     tr["ukf/gp"] = _row(20.0, 0.9, 15.0, 0.9, step=10.0)  # (50 + 10 + 25 + 10) / 4 = 23.75%
-    assert _filter_checks(tr, "ukf")[0][1]
+    assert _filter_checks(tr, "ukf")[0][2]
 
 
 def test_hetgp_is_not_best_when_the_parametric_filter_beats_every_gp() -> None:
@@ -45,7 +45,7 @@ def test_hetgp_is_not_best_when_the_parametric_filter_beats_every_gp() -> None:
         "pf/gp": _row(40.0, 2.0, 40.0, 2.0),  # -100%
         "pf/hetgp": _row(24.0, 1.2, 24.0, 1.2),  # -20%, best of the GPs
     }
-    verdicts = {claim.split(" (")[0]: ok for claim, ok in _filter_checks(tr, "pf")}
+    verdicts = {claim.split(" (")[0]: ok for _, claim, ok in _filter_checks(tr, "pf")}
     assert verdicts["PF: hetGP best or tied"] is False
 
 

@@ -32,3 +32,22 @@ def test_measured_constants_weight_each_episode_by_its_transitions() -> None:
     fl = make_flight(blimp_system(1), np.arange(n) * 0.25, np.zeros((n, 12)), np.zeros((n, 3)),
                      np.zeros((n, 5)), np.zeros((n, 1), bool), episode, **meta)  # fmt: skip
     assert abs(measured([fl], "mass") - (3 * 1.0 + 5 * 2.0) / 8) < 1e-9
+
+
+def test_flights_record_the_motion_capture_state_and_keep_the_exact_one(tmp_path) -> None:
+    import dataclasses
+
+    import pytest
+
+    from estimator_service.flight import FlightError, load_flight, save_flight
+
+    fl = collect_flight(20, seed=3)
+    assert fl.exact is not None and fl.exact.shape == fl.state.shape
+    err = np.abs(fl.state[:, :3] - fl.exact[:, :3])
+    assert 0 < err.max() < 0.005  # sub-millimetre marker noise: the state is the measured one
+    back = load_flight(save_flight(fl, tmp_path / "f.npz"))
+    np.testing.assert_array_equal(back.exact, fl.exact)
+    np.testing.assert_array_equal(back.select(np.arange(5)).exact, fl.exact[:5])
+    assert load_flight(save_flight(dataclasses.replace(fl, exact=None), tmp_path / "g.npz")).exact is None
+    with pytest.raises(FlightError, match="'exact' has shape"):
+        dataclasses.replace(fl, exact=fl.exact[:-1])

@@ -1,0 +1,95 @@
+"""``gpbf gap-sweep``: where learned models start to pay (beyond the paper).
+
+For each reality strength (0: the textbook world the parametric model describes, 1: the
+lab, 2: twice as far), one scripted flight in the ``lab`` preset's drafts, k-fold
+cross-validation as in ``gpbf reproduce``, and the Table 7 measure (per-group RMS
+improvement over the same filter with the parametric model, averaged over the groups)
+of the GP and EGP models with the EKF and the UKF. Writes ``gap_sweep.json``, a table
+(``gap_sweep.md``) and a plot (``gap_sweep.png``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from agents.experiments.report import improvement
+from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
+from agents.sim import collect_flight
+from estimator_service.files import atomic_write_text
+from estimator_service.progress import ProgressBar
+from estimator_service.tracking import mean_sd
+from estimator_service.training import TrainSettings, train_models
+
+__all__ = ["STRENGTHS", "gap_sweep"]
+
+STRENGTHS = (0.0, 0.5, 1.0, 2.0)
+KINDS = ("param", "gp", "egp")
+FILTERS = ("ekf", "ukf")
+
+
+def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = STRENGTHS,
+              progress: bool = True) -> dict:  # fmt: skip
+    """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``."""
+    out.mkdir(parents=True, exist_ok=True)
+    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    bar = ProgressBar("gap sweep", len(strengths) * s.folds, unit="fold", enabled=progress)
+    table: dict[str, dict[str, float]] = {}
+    for strength in strengths:
+        world = replace(s, reality="lab", reality_strength=strength)
+        flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=world.world)
+        track: dict[str, list] = {}
+        for i, (train, test) in enumerate(split_folds(flight, s.folds)):
+            folder = out / f"models_s{strength:g}_fold{i}"
+            train_models([train], folder, kinds=KINDS, settings=settings, seed=s.seed + i)
+            for filt in FILTERS:
+                for kind in KINDS:
+                    track.setdefault(f"{filt}/{kind}", []).append(tracking(folder, test, world, filt, kind))
+            bar.advance()
+        tr = {k: mean_sd(v) for k, v in track.items()}
+        table[f"{strength:g}"] = {
+            f"{f}/{k}": improvement(tr, f"{f}/{k}", f"{f}/param")
+            for f in FILTERS
+            for k in KINDS
+            if k != "param"
+        }
+    bar.close()
+    result = {"settings": asdict(s), "strengths": list(strengths), "improvement_pct": table}
+    atomic_write_text(out / "gap_sweep.json", json.dumps(result, indent=2))
+    atomic_write_text(out / "gap_sweep.md", "\n".join(describe(result)) + "\n")
+    _plot(result, out / "gap_sweep.png")
+    return result
+
+
+def describe(result: dict) -> list[str]:
+    """The sweep as a markdown table."""
+    cols = [f"{f}/{k}" for f in FILTERS for k in KINDS if k != "param"]
+    lines = [
+        "## Improvement over Param against the reality gap (Table 7 measure, %)",
+        "",
+        "| strength | " + " | ".join(c.upper() for c in cols) + " |",
+        "| ---: | " + " | ".join("---:" for _ in cols) + " |",
+    ]
+    for strength, row in result["improvement_pct"].items():
+        lines.append(f"| {strength} | " + " | ".join(f"{row[c]:.0f}" for c in cols) + " |")
+    return lines
+
+
+def _plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    x = [float(k) for k in result["improvement_pct"]]
+    for col in next(iter(result["improvement_pct"].values())):
+        ax.plot(x, [row[col] for row in result["improvement_pct"].values()], marker="o", label=col.upper())
+    ax.axhline(0.0, color="grey", lw=0.8)
+    ax.set_xlabel("reality strength (0 = textbook world)")
+    ax.set_ylabel("improvement over Param (%)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
