@@ -14,7 +14,7 @@ from gpbf_env import BlimpParams
 from gpbf_env.camera import euler_to_matrix
 from gpbf_env.core import WorldConfig, observe
 from gpbf_env.dynamics import derivative, make_coeffs, rk4_step
-from gpbf_env.lab_dynamics import mass_matrix, thrust_targets
+from gpbf_env.lab_dynamics import mass_matrix, motor_track, thrust_targets
 from gpbf_env.reality import lab_effects
 
 ENV_ID = "gpbf_env/Blimp-v0"
@@ -204,3 +204,34 @@ def test_presets_through_gymnasium_make_and_bad_settings_name_the_field() -> Non
             gpbf_env.WorldConfig(reality_strength=bad)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="thrust_dead_band"):
         BlimpParams(thrust_dead_band=0.7)
+
+
+def test_fans_spin_up_faster_than_they_spin_down_and_the_servo_slews_at_its_rate() -> None:
+    p = BlimpParams()
+    c = make_coeffs([p], 0.25, 4, math, 1.0)
+    assert c.lab is not None
+    t = c.lab.half_times
+    up = [m[0] for m in motor_track((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), c.decay, c.lab, math)]
+    down = [m[0] for m in motor_track((0.1, 0.0, 0.0), (0.0, 0.0, 0.0), c.decay, c.lab, math)]
+    for k, tk in enumerate(t):
+        assert up[k] == pytest.approx(0.1 * (1 - math.exp(-tk / p.tau_spinup)), rel=1e-12, abs=1e-15)
+        assert down[k] == pytest.approx(0.1 * math.exp(-tk / p.tau_main), rel=1e-12)
+    servo = [m[1] for m in motor_track((0.0, 0.0, 0.0), (0.0, 1.5, 0.0), c.decay, c.lab, math)]
+    for k, tk in enumerate(t):  # far from the target the slew rate binds, near it the lag
+        lag_only = 1.5 * (1 - math.exp(-tk / p.tau_angle))
+        assert servo[k] <= min(p.servo_rate * tk, lag_only) + 1e-12
+    assert servo[2] == pytest.approx(p.servo_rate * t[2])  # still slewing after 62.5 ms
+    small = [m[1] for m in motor_track((0.0, 0.0, 0.0), (0.0, 0.2, 0.0), c.decay, c.lab, math)]
+    assert small[-1] == pytest.approx(0.2 * (1 - math.exp(-t[-1] / p.tau_angle)))  # a small step: pure lag
+
+
+def test_forward_thrust_slipstream_pitches_the_nose_down_and_reverse_thrust_does_not() -> None:
+    p = dataclasses.replace(CALM, cg_lateral=0.0)
+    state = [5, 3, 2, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    m = mass_matrix(p, lab_effects(p, 1.0))
+    for thrust, expected in ((0.1, 0.1 * p.fin_slipstream), (-0.1, 0.0)):
+        moments = []
+        for params in (p, dataclasses.replace(p, fin_slipstream=0.0)):
+            c = make_coeffs([params], 0.25, 4, math, 1.0)
+            moments.append((m @ np.array(derivative(state, (thrust, 0.0, 0.0), (0, 0, 0), c, math)[6:]))[4])
+        assert moments[0] - moments[1] == pytest.approx(expected, abs=1e-15)
