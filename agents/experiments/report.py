@@ -307,7 +307,12 @@ def _why(failed: list[str]) -> list[str]:
     notes = [text for key, text in WHY if any(c.startswith(key) or f": {key}" in c for c in failed)]
     if not notes:
         return []
-    return ["### Where our numbers differ, and why", "", *[f"- {t}" for t in notes], ""]
+    caveat = (
+        "These causes were measured in the world before the reality presets (textbook physics, "
+        "exact-state truth, `docs/results/reproduce_full`); in the `lab` world, whose parametric "
+        "model no longer has the simulator's structure, they have not been measured again."
+    )
+    return ["### Where our numbers differ, and why", "", caveat, "", *[f"- {t}" for t in notes], ""]
 
 
 def write_report(out: Path, res: dict) -> Path:
