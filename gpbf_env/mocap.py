@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpbf_env.camera import euler_to_matrix
+from gpbf_env.dynamics import wrap_angle
 
 __all__ = ["AUX_DRAWS", "MOCAP_RATE_HZ", "PoseTrack", "measure"]
 
@@ -36,8 +37,8 @@ _STD = np.array([POSITION_STD_M] * 3 + [ANGLE_STD_RAD] * 3)
 
 
 def wrap(a: FloatArray) -> FloatArray:
-    """Angles wrapped to ``[-pi, pi)``."""
-    return a - 2.0 * np.pi * np.floor((a + np.pi) / (2.0 * np.pi))
+    """Angles wrapped to ``[-pi, pi)`` (the dynamics' own rule)."""
+    return wrap_angle(a, np)
 
 
 def pose_rates(states: FloatArray) -> FloatArray:
