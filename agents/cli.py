@@ -74,6 +74,8 @@ def _train_agent(args: argparse.Namespace) -> int:
         n_envs=args.n_envs,
         eval_freq=args.eval_freq,
         progress_bar=not args.quiet,
+        hyperparams=args.hyperparams,
+        tensorboard=args.tensorboard,
     )
     print(f"wrote {path} and {args.out / 'learning_curve.png'}")
     print(json.dumps({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
@@ -177,10 +179,19 @@ def build_parser() -> Parser:
     a.add_argument("--task", choices=("hover", "waypoint"), default="hover", help="flight task")
     add_filter_options(a)
     a.add_argument(
-        "--timesteps", type=checked_int(1, 10**9), default=50_000, help="training environment steps"
-    )
+        "--timesteps", type=checked_int(1, 10**9), default=None,
+        help="training environment steps (default: the hyperparameter file's n_timesteps)",
+    )  # fmt: skip
     a.add_argument(
-        "--n-envs", type=checked_int(1, 256), default=1, help="parallel envs, each with its own filter"
+        "--n-envs", type=checked_int(1, 256), default=None,
+        help="blimps stepped together, each with its own filter (default: the hyperparameter file's)",
+    )  # fmt: skip
+    a.add_argument(
+        "--hyperparams", type=Path, default=None,
+        help="rl-zoo3-format hyperparameter file (default: hyperparams/<algo>.yml)",
+    )  # fmt: skip
+    a.add_argument(
+        "--tensorboard", type=Path, default=None, help="write SB3's TensorBoard logs to this folder"
     )
     a.add_argument("--eval-freq", type=checked_int(1, 10**9), default=5000, help="steps between evaluations")
     a.add_argument(

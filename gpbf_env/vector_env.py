@@ -2,10 +2,13 @@
 
 Blimp ``i`` of ``BlimpVectorEnv(num_envs=N)`` reset with ``seed=s`` reproduces a single
 :class:`~gpbf_env.blimp_env.BlimpEnv` reset with ``seed=s + i`` step for step (same
-random streams, same arithmetic), including across its own autoresets (Gymnasium's
-next-step autoreset). Its ``info`` has the keys, shapes, dtypes, ``"_key"`` masks and
-values that ``gym.make_vec(..., vectorization_mode="sync")`` builds from the single envs'
-infos, and ``render()`` returns the same frames.
+random streams, same arithmetic), including across its own autoresets: Gymnasium's
+next-step autoreset (the default) or same-step autoreset (``autoreset_mode=
+AutoresetMode.SAME_STEP``: an ended blimp is reset within the step that ended it, its last
+observation and info in ``info["final_obs"]`` and ``info["final_info"]``, the layout
+stable-baselines3's vector envs use). Its ``info`` has the keys, shapes, dtypes, ``"_key"``
+masks and values that ``gym.make_vec(..., vectorization_mode="sync")`` builds from the
+single envs' infos in the same mode, and ``render()`` returns the same frames.
 """
 
 from __future__ import annotations
@@ -40,6 +43,9 @@ class BlimpVectorEnv(VectorEnv):
         Truncation horizon per blimp (``None``: never truncate).
     render_mode
         ``"rgb_array"`` (``render()`` returns one frame per blimp) or None.
+    autoreset_mode
+        ``AutoresetMode.NEXT_STEP`` (default) or ``AutoresetMode.SAME_STEP`` (or their
+        string values).
     **config
         :class:`~gpbf_env.core.WorldConfig` fields, shared by all blimps.
     """
@@ -55,16 +61,25 @@ class BlimpVectorEnv(VectorEnv):
         num_envs: int = 1,
         max_episode_steps: int | None = None,
         render_mode: str | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         **config: Any,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
+        if autoreset_mode not in modes and autoreset_mode not in [m.value for m in modes]:
+            raise ValueError(f"autoreset_mode must be one of {[m.value for m in modes]}, got {autoreset_mode!r}")
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.config = WorldConfig(**config)
-        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.config.dt)}
+        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        self.metadata = {
+            **self.metadata,
+            "render_fps": round(1.0 / self.config.dt),
+            "autoreset_mode": self.autoreset_mode,
+        }
         self.max_episode_steps = max_episode_steps
         self.single_observation_space = self.config.observation_space()
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
@@ -188,10 +203,17 @@ class BlimpVectorEnv(VectorEnv):
             terminated[resetting] = truncated[resetting] = crashed[resetting] = False
         obs = self._observe(np.arange(n), noise)
         stepped = ~self._autoreset
-        self._autoreset = terminated | truncated
+        done = terminated | truncated
+        if self.autoreset_mode == AutoresetMode.SAME_STEP and done.any():
+            final = self._info(parts, crashed, stepped)
+            resetting = np.flatnonzero(done)
+            info = self._reset_within_step(obs, final, resetting, parts, crashed)
+        else:
+            self._autoreset = done
+            info = self._info(parts, crashed, stepped)
         if self.render_mode is not None:
             self._record_trail(resetting)
-        return obs, reward, terminated, truncated, self._info(parts, crashed, stepped)
+        return obs, reward, terminated, truncated, info
 
     def render(self) -> tuple[NDArray[np.uint8], ...] | None:
         """One ``rgb_array`` frame per blimp, as the ``"sync"`` vector env returns.
@@ -216,6 +238,30 @@ class BlimpVectorEnv(VectorEnv):
         return tuple(frames)
 
     # -- helpers -----------------------------------------------------------------------
+    def _reset_within_step(
+        self,
+        obs: dict[str, NDArray[Any]],
+        final: dict[str, NDArray[Any]],
+        rows: NDArray[np.int64],
+        parts: dict[str, NDArray[Any]],
+        crashed: NDArray[np.bool_],
+    ) -> dict[str, Any]:
+        """Same-step autoreset of the ended blimps ``rows``: ``obs`` is updated in place to
+        their first observation; returns the step's info with ``final_obs``/``final_info``."""
+        n = self.num_envs
+        ended = np.zeros(n, dtype=bool)
+        ended[rows] = True
+        final_obs = np.full(n, None, dtype=object)
+        for i in rows:  # Gymnasium's layout: one unbatched observation per ended blimp
+            final_obs[i] = {key: value[i].copy() for key, value in obs.items()}
+        fresh = self._observe(rows, self._reset_rows(rows))
+        for key, value in fresh.items():
+            obs[key][rows] = value
+        info = self._info(parts, crashed, ~ended)
+        info["final_obs"], info["_final_obs"] = final_obs, ended.copy()
+        info["final_info"], info["_final_info"] = _masked(final, ended), ended.copy()
+        return info
+
     def _rebuild_coeffs(self) -> None:
         cfg = self.config
         self._coeffs = make_coeffs(self._params, cfg.dt, cfg.substeps, np, cfg.strength)
@@ -266,17 +312,22 @@ class BlimpVectorEnv(VectorEnv):
         self._wind[:, rows] = a * self._wind[:, rows] + s * z.T
 
     def _observe(self, rows: NDArray[np.int64], noise: NDArray[np.float64]) -> dict[str, Any]:
-        aux = np.stack([rng.standard_normal(AUX_DRAWS) for rng in self._aux])  # per-blimp streams
-        self._mocap = measure(self._track, aux)
-        frames = self.config.frame_schedule(self._steps)
-        pose = self._state.T
+        """Observations ``(len(rows), ...)`` of blimps ``rows``; ``noise`` is their camera noise."""
+        aux = np.zeros((self.num_envs, AUX_DRAWS))
+        aux[rows] = np.stack([self._aux[i].standard_normal(AUX_DRAWS) for i in rows])  # per-blimp streams
+        self._mocap[rows] = measure(self._track, aux)[rows]
+        frames = self.config.frame_schedule(self._steps[rows])
+        pose = self._state.T[rows]
         latency, jitter = self._lag
         if self.config.strength > 0 and frames.any():  # frames show where blimps were at exposure
             lag = np.maximum(latency + jitter * aux[:, -1], 0.0)
-            pose = self._track.at(lag[None, :])[0]
-        ell, valid = observe(self.config, pose, frames, noise, self._rngs)
+            pose = self._track.at(lag[None, :])[0][rows]
+        ell, valid = observe(self.config, pose, frames, noise, [self._rngs[i] for i in rows])
         if self.render_mode is not None:
-            self._last_obs = {"ellipses": ell.copy(), "valid": valid.copy()}
+            if self._last_obs is None or rows.size == self.num_envs:
+                self._last_obs = {"ellipses": ell.copy(), "valid": valid.copy()}
+            else:
+                self._last_obs["ellipses"][rows], self._last_obs["valid"][rows] = ell, valid
         return {"ellipses": ell, "valid": valid}
 
     def _info(
@@ -330,3 +381,16 @@ class BlimpVectorEnv(VectorEnv):
             info[key] = np.where(stepped, np.asarray(value, dtype=dtype), dtype(0))
             info[f"_{key}"] = stepped.copy()
         return info
+
+
+def _masked(info: dict[str, NDArray[Any]], rows: NDArray[np.bool_]) -> dict[str, NDArray[Any]]:
+    """``info`` keeping only blimps ``rows`` (zero and masked off elsewhere), as Gymnasium
+    batches the single infos of some of the envs."""
+    out: dict[str, NDArray[Any]] = {}
+    for key, value in info.items():
+        if key.startswith("_"):
+            continue
+        keep = rows & info[f"_{key}"]
+        shape = (-1,) + (1,) * (value.ndim - 1)
+        out[key], out[f"_{key}"] = np.where(keep.reshape(shape), value, value.dtype.type(0)), keep
+    return out

@@ -13,7 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 EXPECTED = {
-    "bench_agents.py": {"state_steps_per_s", "belief_steps_per_s", "belief_to_state_ratio"},
+    "bench_agents.py": {"state_steps_per_s", "belief_steps_per_s", "belief_to_state_ratio", "batched_belief_to_state_ratio"},
     "bench_service.py": {
         "rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz", "fleet_blimps_at_4hz",
         "overhead_over_zenoh_floor",

@@ -330,3 +330,40 @@ def test_every_documented_info_key_is_returned(env_id: str) -> None:
     *_, vstep_info = venv.step(np.zeros((2, 3), dtype=np.float32))
     assert {k for k in vreset_info if not k.startswith("_")} == set(reset_info)
     assert {k for k in vstep_info if not k.startswith("_")} == documented
+
+
+@pytest.mark.parametrize("reality", REALITIES)
+def test_same_step_autoreset_matches_sync_vector_env(reality: str) -> None:
+    """SB3's layout: an ended blimp is reset within the step, its last observation and
+    info under ``final_obs``/``final_info``; every value equals the sync vector env's."""
+    from gymnasium.vector import AutoresetMode
+
+    n, mode = 3, AutoresetMode.SAME_STEP
+    kwargs = {"num_envs": n, "max_episode_steps": 30, "reality": reality}
+    native = gym.make_vec(ENV_ID, vectorization_mode="vector_entry_point", autoreset_mode=mode, **kwargs)
+    sync = gym.make_vec(ENV_ID, vectorization_mode="sync", vector_kwargs={"autoreset_mode": mode}, **kwargs)
+    assert native.metadata["autoreset_mode"] == mode
+    rng = np.random.default_rng(5)
+    native.reset(seed=3)
+    sync.reset(seed=3)
+    ended = 0
+    for k in range(120):
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32) * (0.1 if k < 40 else 1.0)
+        obs, reward, term, trunc, info = native.step(actions)
+        want_obs, want_reward, want_term, want_trunc, want = sync.step(actions)
+        for key in ("ellipses", "valid"):
+            np.testing.assert_allclose(obs[key], want_obs[key], rtol=0, atol=1e-4, err_msg=key)
+        np.testing.assert_allclose(reward, want_reward, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(term | trunc, want_term | want_trunc)
+        final, want_final = info.pop("final_obs", None), want.pop("final_obs", None)
+        assert (final is None) == (want_final is None)
+        if final is not None:
+            np.testing.assert_array_equal(info.pop("_final_obs"), want.pop("_final_obs"))
+            for i in np.flatnonzero(want_term | want_trunc):
+                np.testing.assert_allclose(final[i]["ellipses"], want_final[i]["ellipses"], atol=1e-4)
+            _assert_same_info(info.pop("final_info"), want.pop("final_info"))
+            ended += int((want_term | want_trunc).sum())
+        _assert_same_info(info, want)
+    assert ended >= n  # every blimp ended at least once (truncation at 30 steps)
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        gpbf_env.BlimpVectorEnv(2, autoreset_mode="sometimes")

@@ -99,8 +99,51 @@ def test_saved_agent_reloads_and_acts_deterministically(models: str, tmp_path: P
         assert load_agent(Path("..") / path.name)[1] == spec
 
 
+@pytest.mark.parametrize(("variant", "filt"), [(v, "ekf") for v in VARIANTS] + [("belief", "ukf")])
+def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, filt: str) -> None:
+    """Native batched simulator and batched filter step vs SB3's DummyVecEnv of single
+    belief envs: observations, rewards, dones, terminal observations, episode records and
+    beliefs over 300 steps with crashes and truncations (240 steps) of every blimp.
+
+    The simulator and the per-blimp UKF path are equal bit for bit. A batched model call
+    rounds differently from one query, and this 60-point GP-EKF, flown far outside its
+    data by random actions, grows that rounding to at most 9.4e-7 (of the covariance's
+    largest entry, or metres) in 300 steps; the parametric EKF to 2.9e-9."""
+    spec = AgentSpec(variant=variant, models=models, filter=filt, seed=7)
+    n = 3
+    batched, single = make_vec(spec, n, batched=True), make_vec(spec, n, batched=False)
+    obs, want = batched.reset(), single.reset()
+    np.testing.assert_array_equal(obs, want)
+    rng = np.random.default_rng(2)
+    ends = 0
+    for k in range(300):
+        actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32) * (1.0 if k % 120 > 60 else 0.2)
+        obs, reward, done, infos = batched.step(actions)
+        want, want_reward, want_done, want_infos = single.step(actions)
+        np.testing.assert_allclose(obs, want, rtol=1e-5, atol=1e-6)  # float32 of the beliefs below
+        for b, env in zip(batched.unwrapped.beliefs() or [], single.envs, strict=False):
+            want_b = env.env.belief()  # a batched model call vs one query: rounding, grown below
+            np.testing.assert_allclose(b.mean, want_b.mean, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(b.cov, want_b.cov, rtol=0, atol=1e-5 * np.abs(want_b.cov).max())
+        np.testing.assert_array_equal(reward, want_reward)
+        np.testing.assert_array_equal(done, want_done)
+        for got, exp in zip(infos, want_infos, strict=True):
+            assert got["TimeLimit.truncated"] == exp["TimeLimit.truncated"]
+            assert ("terminal_observation" in got) == ("terminal_observation" in exp)
+            if "terminal_observation" in exp:
+                ends += 1
+                last, want_last = got["terminal_observation"], exp["terminal_observation"]
+                np.testing.assert_allclose(last, want_last, rtol=1e-5, atol=1e-6)
+                assert got["episode"]["l"] == exp["episode"]["l"]  # VecMonitor sums float32 rewards
+                assert got["episode"]["r"] == pytest.approx(exp["episode"]["r"], abs=1e-4)
+                assert got["is_success"] == exp["is_success"]
+    assert ends >= n
+    batched.close()
+    single.close()
+
+
 def test_sb3_vector_env_gives_each_sub_env_its_own_filter(models: str) -> None:
-    venv = make_vec(AgentSpec(variant="belief", models=models), n_envs=2)
+    venv = make_vec(AgentSpec(variant="belief", models=models), n_envs=2, batched=False)
     obs = venv.reset()
     assert obs.shape == (2, 30) and not np.array_equal(obs[0], obs[1])
     filters = [e.env._filter for e in venv.envs]
@@ -171,3 +214,71 @@ def test_collect_records_an_agents_flight_in_the_training_format(models: str, tm
     assert flight.metadata["pilot"] == "agent" and len(flight) == 121
     x, y = prediction_data([flight])
     assert x.shape == (len(flight.transition_rows()), 15) and x.shape[0] >= 60 and np.all(np.isfinite(y))
+
+
+def test_registered_ids_build_every_variant_and_hyperparams_cover_them(models: str) -> None:
+    import gymnasium as gym
+
+    from agents.rl import agent_env_id
+    from agents.rl.hyperparams import load_hyperparams
+
+    for task in ("hover", "waypoint"):
+        for variant in VARIANTS:
+            env_id = agent_env_id(task, variant)
+            env = gym.make(env_id, models=models)
+            obs, _ = env.reset(seed=0)
+            assert env.unwrapped.config.task == task and env.observation_space.contains(obs)
+            for algo in ("ppo", "sac"):
+                params = load_hyperparams(algo, env_id)
+                assert params.policy == "MlpPolicy" and params.n_timesteps == 1_000_000
+    with pytest.raises(ValueError, match="needs a model folder"):
+        gym.make(agent_env_id("hover", "belief"))
+    with pytest.raises(ValueError, match="variant"):
+        agent_env_id("hover", "telepathy")
+
+
+def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Path) -> None:
+    from agents.rl.hyperparams import load_hyperparams
+
+    bad = tmp_path / "ppo.yml"
+    for text, match in (
+        ("x-v0:\n  normalize: true\n", "'normalize'"),
+        ("x-v0:\n  n_envs: 0\n", "n_envs"),
+        ('x-v0:\n  policy_kwargs: "dict(net_arch=[8])"\n', "policy_kwargs"),
+        ("y-v0: {}\n", "no entry for 'x-v0'"),
+    ):
+        bad.write_text(text)
+        with pytest.raises((ValueError, KeyError), match=match):
+            load_hyperparams("ppo", "x-v0", bad)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_hyperparams("ppo", "x-v0", tmp_path / "none.yml")
+
+
+@pytest.mark.parametrize(
+    ("algo", "env_id", "extra"),
+    [
+        ("sac", "gpbf_env/Blimp-v0", ["--gym-packages", "gpbf_env", "-params", "learning_starts:64"]),
+        (
+            "ppo",
+            "gpbf_agents/BlimpBelief-v0",
+            ["--gym-packages", "agents.rl", "-params", "n_steps:16", "n_envs:2"],
+        ),
+    ],
+)
+def test_rl_zoo3_trains_on_the_env_with_the_committed_hyperparameters(
+    models: str, algo: str, env_id: str, extra: list[str], tmp_path: Path
+) -> None:
+    """The issue's command, at a 128-step budget: rl-zoo3 reads hyperparams/<algo>.yml,
+    builds the env (the belief variant through its registered id and --env-kwargs),
+    trains and saves."""
+    root = Path(__file__).resolve().parents[1]
+    cmd = [
+        sys.executable, "-m", "rl_zoo3.train", "--algo", algo, "--env", env_id,
+        "--conf-file", str(root / "hyperparams" / f"{algo}.yml"), "-n", "128", "--seed", "0",
+        "--eval-freq", "-1", "--log-folder", str(tmp_path), "--device", "cpu", *extra,
+    ]  # fmt: skip
+    if env_id.startswith("gpbf_agents"):
+        cmd += ["--env-kwargs", f"models:{models!r}"]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
+    assert list(tmp_path.glob(f"{algo}/*_1/*.zip")), out.stdout[-2000:]

@@ -20,15 +20,17 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
 
+from agents.rl.batched import BeliefVecEnv
+from agents.rl.hyperparams import Hyperparams, load_hyperparams
+from agents.rl.registry import TASK_ENVS, agent_env_id, episode_success
 from agents.rl.wrappers import VARIANTS, make_belief_env
 from estimator_service.files import atomic_write_text
 
 __all__ = ["AgentPolicy", "AgentSpec", "evaluate_agent", "load_agent", "make_vec", "train_agent"]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
-TASK_ENVS = {"hover": "gpbf_env/Blimp-v0", "waypoint": "gpbf_env/BlimpWaypoint-v0"}
 
 
 @dataclass(frozen=True)
@@ -67,47 +69,86 @@ def make_env(spec: AgentSpec, rank: int = 0, backend: str = "inprocess", client:
     return Monitor(env)
 
 
-def make_vec(spec: AgentSpec, n_envs: int = 1, backend: str = "inprocess", client: Any = None) -> VecEnv:
-    """SB3 vector env of ``n_envs`` independent belief envs, seeded ``spec.seed + rank``."""
-    venv = DummyVecEnv([lambda r=r: make_env(spec, r, backend, client) for r in range(n_envs)])
+def make_vec(
+    spec: AgentSpec,
+    n_envs: int = 1,
+    backend: str = "inprocess",
+    client: Any = None,
+    batched: bool | None = None,
+) -> VecEnv:
+    """SB3 vector env of ``n_envs`` independent belief envs, seeded ``spec.seed + rank``.
+
+    ``batched`` (the default for the in-process back end) steps the blimps in the native
+    batched simulator and their filters with one batched model call
+    (:class:`~agents.rl.batched.BeliefVecEnv`); otherwise a ``DummyVecEnv`` of
+    :func:`make_env` envs steps them one at a time (the service back end always does).
+    """
+    batched = backend == "inprocess" if batched is None else batched
+    if batched and backend != "inprocess":
+        raise ValueError(f"batched belief envs run the filters in-process, not with backend {backend!r}")
+    if batched:
+        env = BeliefVecEnv(
+            spec.variant, n_envs, env_id=TASK_ENVS[spec.task], models=spec.models, filter=spec.filter,
+            model=spec.model,
+        )  # fmt: skip
+        venv: VecEnv = VecMonitor(env)
+    else:
+        venv = DummyVecEnv([lambda r=r: make_env(spec, r, backend, client) for r in range(n_envs)])
     venv.seed(spec.seed)
     return venv
 
 
-def _algo(spec: AgentSpec, venv: VecEnv, small: bool) -> BaseAlgorithm:
-    cls = ALGOS[spec.algo]
-    if spec.algo == "ppo":
-        kw = (
-            {"n_steps": 64, "batch_size": 64, "n_epochs": 2}
-            if small
-            else {"n_steps": max(2048 // venv.num_envs, 64), "batch_size": 256, "gamma": 0.98}
-        )
-    else:
-        kw = (
-            {"learning_starts": 64, "batch_size": 64, "buffer_size": 10_000}
-            if small
-            else {"learning_starts": 1000}
-        )
-    return cls("MlpPolicy", venv, seed=spec.seed, verbose=0, device="cpu", **kw)
+SMALL = {  # tiny budgets (smoke tests): updates early enough to run in a few hundred steps
+    "ppo": {"n_steps": 64, "batch_size": 64, "n_epochs": 2},
+    "sac": {"learning_starts": 64, "batch_size": 64, "buffer_size": 10_000},
+}
+
+
+def _algo(
+    spec: AgentSpec, venv: VecEnv, params: Hyperparams, small: bool, tensorboard: str | None
+) -> BaseAlgorithm:
+    kw = SMALL[spec.algo] if small else params.kwargs
+    return ALGOS[spec.algo](
+        params.policy, venv, seed=spec.seed, verbose=0, device="cpu", tensorboard_log=tensorboard, **kw
+    )
 
 
 def train_agent(
     spec: AgentSpec,
-    timesteps: int,
+    timesteps: int | None,
     out_dir: str | Path,
     *,
-    n_envs: int = 1,
+    n_envs: int | None = None,
     eval_freq: int = 5000,
     eval_episodes: int = 3,
     progress_bar: bool = True,
     small: bool | None = None,
+    hyperparams: str | Path | None = None,
+    tensorboard: str | Path | None = None,
 ) -> Path:
-    """Train, evaluate periodically, checkpoint, save the model, the spec and a learning curve."""
+    """Train, evaluate periodically, checkpoint, save the model, the spec and a learning curve.
+
+    Hyperparameters are the entry of the agent's registered id in ``hyperparams``
+    (default ``hyperparams/<algo>.yml``); ``timesteps`` and ``n_envs`` default to the
+    entry's. ``small`` (default: ``timesteps <= 5000``) uses :data:`SMALL` and one env
+    instead, for smoke runs. ``tensorboard`` is a folder for SB3's TensorBoard logs (needs the
+    ``tensorboard`` package).
+    """
+    params = load_hyperparams(spec.algo, agent_env_id(spec.task, spec.variant), hyperparams)
+    timesteps = params.n_timesteps if timesteps is None else timesteps
+    small = timesteps <= 5000 if small is None else small
+    n_envs = (1 if small else params.n_envs) if n_envs is None else n_envs
+    if tensorboard is not None:
+        import importlib.util
+
+        if importlib.util.find_spec("tensorboard") is None:
+            raise ModuleNotFoundError(
+                "tensorboard logging needs the tensorboard package: pip install tensorboard"
+            )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     venv = make_vec(spec, n_envs)
-    small = timesteps <= 5000 if small is None else small
-    agent = _algo(spec, venv, small)
+    agent = _algo(spec, venv, params, small, None if tensorboard is None else str(tensorboard))
     eval_env = make_vec(AgentSpec(**{**asdict(spec), "seed": spec.seed + 10_000}), 1)
     callbacks = CallbackList(
         [
@@ -201,11 +242,7 @@ def evaluate_agent(
                 err2 += float(np.sum((info["belief_mean"][:3] - info["state"][:3]) ** 2))
                 n += 1
         returns.append(total)
-        final = info.get("distance_m", math.inf)
-        crashed = bool(info.get("crashed"))
-        success.append(
-            bool(terminated and not crashed) if spec.task == "waypoint" else final < 0.5 and not crashed
-        )
+        success.append(episode_success(spec.task, terminated, info))
         if on_episode:
             on_episode(ep + 1)
     env.close()

@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
 
+from agents.rl.registry import episode_success
 from agents.sim import env_frames, env_readings, env_system
 from estimator_service.factory import build_filter
 from estimator_service.filters import GaussianBelief
@@ -38,27 +39,59 @@ ROOM_CENTRE = np.array([5.0, 3.0, 2.0])
 ROOM_HALF = np.array([5.0, 3.0, 2.0])
 FloatArray = NDArray[np.float64]
 FEATURE_BOUND = 10.0  # features are scaled to order one; clipped here
+ELLIPSE_SCALE = np.array([640.0, 480.0, 200.0, 200.0, 1.0])  # pixels, pixels, pixels, pixels, rad
 
 
 def _goal_features(mean: FloatArray, goal: FloatArray) -> FloatArray:
-    """Goal offset in the heading frame (forward, left, up; metres, clipped to +-3) and
-    sine/cosine of the yaw error: what a pilot steers by."""
-    dx, dy, dz = goal[:3] - mean[:3]
-    c, s = np.cos(mean[5]), np.sin(mean[5])
-    rel = np.clip([c * dx + s * dy, -s * dx + c * dy, dz], -3.0, 3.0)
-    dyaw = goal[3] - mean[5]
-    return np.concatenate([rel, [np.sin(dyaw), np.cos(dyaw)]])
+    """Goal offset ``(N, 5)`` in the heading frame (forward, left, up; metres, clipped to
+    +-3) and sine/cosine of the yaw error, for ``mean (N, 12)`` and ``goal (N, 4)``: what a
+    pilot steers by."""
+    dx, dy, dz = (goal[:, :3] - mean[:, :3]).T
+    c, s = np.cos(mean[:, 5]), np.sin(mean[:, 5])
+    rel = np.clip(np.stack([c * dx + s * dy, -s * dx + c * dy, dz], axis=1), -3.0, 3.0)
+    dyaw = goal[:, 3] - mean[:, 5]
+    return np.concatenate([rel, np.sin(dyaw)[:, None], np.cos(dyaw)[:, None]], axis=1)
+
+
+def belief_features_many(mean: FloatArray, std: FloatArray | None, goal: FloatArray) -> FloatArray:
+    """:func:`belief_features` of ``N`` estimates: ``mean, std: (N, 12)``, ``goal: (N, 4)``
+    -> ``(N, 18)`` (``(N, 30)`` with ``std``)."""
+    pos = (mean[:, :3] - ROOM_CENTRE) / ROOM_HALF
+    yaw = mean[:, 5:6]
+    parts = [pos, mean[:, 3:5], np.sin(yaw), np.cos(yaw), mean[:, 6:12], _goal_features(mean, goal)]
+    if std is not None:
+        parts.append(np.clip(np.log(np.maximum(std, 1e-12)), -8.0, 2.0) / 4.0)
+    return np.concatenate(parts, axis=1)
 
 
 def belief_features(mean: FloatArray, std: FloatArray | None, goal: FloatArray) -> FloatArray:
     """Scaled features of a state estimate: position, roll/pitch, sin/cos yaw, velocities,
     optional log standard deviations (clipped to [-8, 2]) and the goal relative to it."""
-    pos = (mean[:3] - ROOM_CENTRE) / ROOM_HALF
-    att = np.array([mean[3], mean[4], np.sin(mean[5]), np.cos(mean[5])])
-    parts = [pos, att, mean[6:12], _goal_features(mean, goal)]
-    if std is not None:
-        parts.append(np.clip(np.log(np.maximum(std, 1e-12)), -8.0, 2.0) / 4.0)
-    return np.concatenate(parts)
+    return belief_features_many(mean[None], None if std is None else std[None], goal[None])[0]
+
+
+def ellipse_features_many(
+    ellipses: NDArray[np.float32], valid: NDArray[Any], last_action: FloatArray, goal: FloatArray
+) -> FloatArray:
+    """The ``ellipses`` variant's features ``(N, 6 C + 7)``: scaled ellipses ``(N, C, 5)``,
+    valid flags ``(N, C)``, the last action ``(N, 3)`` and the absolute goal ``(N, 4)``."""
+    n = ellipses.shape[0]
+    ell = ellipses.astype(np.float64) / ELLIPSE_SCALE
+    g = np.concatenate([(goal[:, :3] - ROOM_CENTRE) / ROOM_HALF, goal[:, 3:4] / np.pi], axis=1)
+    return np.concatenate([ell.reshape(n, -1), valid.astype(np.float64), last_action, g], axis=1)
+
+
+def bounded(features: FloatArray) -> NDArray[np.float32]:
+    """Features as the observation space holds them: finite, clipped, float32."""
+    f = np.nan_to_num(features, nan=0.0, posinf=FEATURE_BOUND, neginf=-FEATURE_BOUND)
+    return np.clip(f, -FEATURE_BOUND, FEATURE_BOUND).astype(np.float32)
+
+
+def feature_size(variant: str, n_cameras: int) -> int:
+    """Length of a ``variant``'s feature vector with ``n_cameras`` cameras."""
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    return {"state": 18, "belief": 30, "belief-param": 30, "ellipses": 6 * n_cameras + 3 + 4}[variant]
 
 
 class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -130,8 +163,7 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._client = EstimatorClient(client, f"env-{uuid.uuid4().hex[:12]}")
         self._rng = np.random.default_rng(seed)
         self._system = env_system(env)
-        n_cam = env.observation_space["ellipses"].shape[0]
-        size = {"state": 18, "belief": 30, "belief-param": 30, "ellipses": 6 * n_cam + 3 + 4}[variant]
+        size = feature_size(variant, env.observation_space["ellipses"].shape[0])
         self.observation_space = spaces.Box(-FEATURE_BOUND, FEATURE_BOUND, shape=(size,), dtype=np.float32)
         self._belief: Any = None
         self.last_action = np.zeros(3)
@@ -170,14 +202,12 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self.variant == "state":
             f = belief_features(info["state"], None, goal)
         elif self.variant == "ellipses":
-            ell = obs["ellipses"].astype(np.float64) / np.array([640.0, 480.0, 200.0, 200.0, 1.0])
-            g = np.concatenate([(goal[:3] - ROOM_CENTRE) / ROOM_HALF, [goal[3] / np.pi]])
-            f = np.concatenate([ell.ravel(), obs["valid"].astype(np.float64), self.last_action, g])
+            ell, valid = obs["ellipses"][None], obs["valid"][None]
+            f = ellipse_features_many(ell, valid, self.last_action[None], goal[None])[0]
         else:
             b = self.belief()
             f = belief_features(b.mean, np.sqrt(np.diag(b.cov)), goal)
-        f = np.nan_to_num(f, nan=0.0, posinf=FEATURE_BOUND, neginf=-FEATURE_BOUND)
-        return np.clip(f, -FEATURE_BOUND, FEATURE_BOUND).astype(np.float32)
+        return bounded(f)
 
     # -- gymnasium API -------------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -196,6 +226,8 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         b = self.belief()
         if b is not None:
             info = {**info, "belief_mean": b.mean, "belief_std": np.sqrt(np.diag(b.cov))}
+        if terminated or truncated:  # SB3's EvalCallback and Monitor read it
+            info = {**info, "is_success": episode_success(self.env.unwrapped.config.task, terminated, info)}
         return self.features(obs, info), reward, terminated, truncated, info
 
     def close(self) -> None:
