@@ -75,8 +75,11 @@ def collect_flight(
     env_kwargs: dict[str, Any] | None = None,
     policy: Callable[[dict[str, Any], dict[str, Any]], FloatArray] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    episode_seconds: float | None = None,
 ) -> Flight:
-    """Fly for ``seconds`` of sim time and record; episodes restart after a crash.
+    """Fly for ``seconds`` of sim time and record; episodes restart after a crash (and
+    after ``episode_seconds``, when given: e.g. an agent's 60 s episodes, each with a new
+    goal).
 
     The flight's ``state`` is the env's motion-capture measurement (``info["mocap"]``),
     the ground truth the paper trained and scored on; ``exact`` is the simulator's state.
@@ -91,8 +94,12 @@ def collect_flight(
         ``info["t"] == 0``.
     progress
         Called with the number of steps done and the total after each step.
+    episode_seconds
+        Episode length (None: episodes end only by crashing).
     """
     env = gym.make(env_id, max_episode_steps=NO_LIMIT, **(env_kwargs or {}))
+    dt = env.unwrapped.config.dt
+    limit = NO_LIMIT if episode_seconds is None else max(1, round(episode_seconds / dt))
     rng = np.random.default_rng(seed)
     driver = make_pilot(pilot, rng)
     obs, info = env.reset(seed=seed)
@@ -100,7 +107,7 @@ def collect_flight(
     steps = round(seconds / env.unwrapped.config.dt)
     keys = ("t", "state", "exact", "control", "ellipses", "valid", "episode")
     rows: dict[str, list[Any]] = {k: [] for k in keys}
-    episode = 0
+    episode, ep_steps = 0, 0
     for k in range(steps + 1):
         action = policy(obs, info) if policy else driver.act(info["state"])
         action = np.zeros(3) if k == steps else np.asarray(action, dtype=np.float64)
@@ -117,8 +124,9 @@ def collect_flight(
         if k == steps:
             break
         obs, _, terminated, truncated, info = env.step(action.astype(np.float32))
-        if terminated or truncated:
-            episode += 1
+        ep_steps += 1
+        if terminated or truncated or ep_steps >= limit:
+            episode, ep_steps = episode + 1, 0
             obs, info = env.reset()
             flown.append(env.unwrapped.params.to_dict())
         if progress:

@@ -282,3 +282,35 @@ def test_rl_zoo3_trains_on_the_env_with_the_committed_hyperparameters(
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-3000:]
     assert list(tmp_path.glob(f"{algo}/*_1/*.zip")), out.stdout[-2000:]
+
+
+def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) -> None:
+    """Tiny budgets: results.json holds per task and variant the success rate and mean
+    return, the pilot's figures and the targets; the report, both figures and the
+    agent-data table are written."""
+    import json
+    import shutil
+
+    from agents.experiments.agent_data import agent_data_loop
+    from agents.experiments.rl import RLSettings, run
+    from agents.experiments.rl_report import write_report
+
+    shutil.copytree(models, tmp_path / "models")
+    cfg = RLSettings(
+        timesteps=256, seeds=1, episodes=1, tasks=("hover",), variants=("state", "belief", "ellipses"),
+        points=60, model="gp", jobs=1,
+    )  # fmt: skip
+    run(tmp_path, cfg)
+    data = json.loads((tmp_path / "results.json").read_text())
+    hover = data["results"]["hover"]
+    assert set(hover) == {"state", "belief", "ellipses"}
+    assert all(0 <= hover[v]["success_rate"] <= 1 and np.isfinite(hover[v]["mean_return"]) for v in hover)
+    assert np.isfinite(data["pilot"]["hover"]["mean_return"]) and "hover" in data["gap_closed"]
+    assert "hover_state_success_ge_0.9" in data["targets"]
+    agent = tmp_path / "agents" / "hover-state-0" / "model.zip"
+    loop = agent_data_loop(tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, points=40)
+    assert set(loop["tracking"]) == {"scripted", "scripted+agent"} and loop["heldout_episodes"] >= 1
+    write_report(tmp_path, data)
+    report = (tmp_path / "report.md").read_text()
+    assert "agent-data loop" in report and "WaypointPilot" in report
+    assert (tmp_path / "learning_curves.png").exists() and (tmp_path / "returns.png").exists()

@@ -1,8 +1,13 @@
-""" "What filtering is worth": PPO on the four observation variants, hover and waypoint tasks.
+""" "What filtering is worth": RL agents on the four observation variants, hover and waypoint.
 
 ``python -m agents.experiments.rl --out docs/results/rl`` trains one agent per (task,
-variant, seed) at a fixed budget, evaluates each on the same held-out episodes, and writes
-``report.md`` (a table of returns and success rates) and ``returns.png``.
+variant, seed) with the committed hyperparameters (``hyperparams/<algo>.yml``, in the
+batched belief env), evaluates each and the hand-written
+:class:`~agents.pilots.WaypointPilot` on the same held-out episodes, and writes
+``results.json`` (per task and variant: success rate and mean return; the pilot's; the
+share of the ellipse-to-state gap the GP-belief agent closes; each target's verdict),
+``report.md``, ``learning_curves.png`` (mean and spread over seeds) and ``returns.png``.
+``--agent-data`` adds the agent-data loop (:mod:`agents.experiments.agent_data`).
 """
 
 from __future__ import annotations
@@ -11,21 +16,42 @@ import argparse
 import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from agents.rl import AgentSpec, evaluate_agent, train_agent
+from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.wrappers import VARIANTS
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["main", "run"]
+__all__ = ["RLSettings", "gap_closed", "main", "run", "summarise"]
+
+EVAL_SEED = 5000  # the held-out episodes every agent and the pilot fly
+CURVE_POINTS = 10  # evaluations during training
 
 
-def _job(task: str, variant: str, seed: int, model: str, models: Path, out: Path, cfg: dict) -> dict:
+@dataclass(frozen=True)
+class RLSettings:
+    """One experiment: budget (None: the hyperparameter file's), seeds, tasks, variants."""
+
+    algo: str = "ppo"
+    timesteps: int | None = None
+    seeds: int = 3
+    episodes: int = 20
+    tasks: tuple[str, ...] = ("hover", "waypoint")
+    variants: tuple[str, ...] = VARIANTS
+    points: int = 600
+    model: str = "sparse"
+    jobs: int = 2
+    tensorboard: bool = False
+
+
+def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSettings) -> dict:
     """Train and evaluate one agent (in a worker process, one BLAS/torch thread); the result
     is also written to the agent's folder so an interrupted experiment resumes there."""
     import torch
@@ -37,128 +63,129 @@ def _job(task: str, variant: str, seed: int, model: str, models: Path, out: Path
     if done.exists():
         return json.loads(done.read_text())
     with threadpool_limits(1):
-        spec = AgentSpec("ppo", variant, task, "ekf", model, str(models), seed)
+        spec = AgentSpec(cfg.algo, variant, task, "ekf", cfg.model, str(models), seed)
+        budget = cfg.timesteps or 1_000_000
         path = train_agent(
             spec,
-            cfg["timesteps"],
+            cfg.timesteps,
             folder,
-            n_envs=cfg["n_envs"],
-            eval_freq=max(cfg["timesteps"] // 6, 1000),
+            eval_freq=max(budget // CURVE_POINTS, 1000),
+            eval_episodes=8,
             progress_bar=False,
+            tensorboard=out / "tensorboard" if cfg.tensorboard else None,
         )
-        res = evaluate_agent(path, episodes=cfg["episodes"], seed=5000)
+        res = evaluate_agent(path, episodes=cfg.episodes, seed=EVAL_SEED)
     atomic_write_text(done, json.dumps(res))
     return res
 
 
-def run(
-    out: Path,
-    timesteps: int,
-    seeds: int,
-    episodes: int,
-    tasks: tuple[str, ...],
-    points: int,
-    n_envs: int = 4,
-    model: str = "sparse",
-    jobs: int = 2,
-) -> dict:
-    """Train every (task, variant, seed) agent, ``jobs`` at a time, and write the report.
-
-    Agents whose folder already holds ``result.json`` are not trained again (resume).
-    """
-    out.mkdir(parents=True, exist_ok=True)
+def _models(out: Path, cfg: RLSettings) -> Path:
+    """The belief variants' models (trained once on a 10-minute scripted flight)."""
     models = out / "models"
-    if not (models / "parametric.npz").exists() or not (models / f"prediction_{model}.npz").exists():
+    if not (models / "parametric.npz").exists() or not (models / f"prediction_{cfg.model}.npz").exists():
         flight = collect_flight(600, seed=123)
         train_models(
-            [flight],
-            models,
-            kinds=sorted({"param", model}),
-            settings=TrainSettings(n_points=points, restarts=1, max_iter=60),
+            [flight], models, kinds=sorted({"param", cfg.model}), settings=TrainSettings(n_points=cfg.points)
         )
-    cfg = {"timesteps": timesteps, "n_envs": n_envs, "episodes": episodes}
-    todo = [(t, v, s) for t in tasks for v in VARIANTS for s in range(seeds)]
-    results: dict[str, dict[str, list[dict]]] = {}
+    return models
+
+
+def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
+    """Train every (task, variant, seed) agent, ``cfg.jobs`` at a time, evaluate them and the
+    pilot, and write ``results.json`` and the report (agents already holding
+    ``result.json`` are not trained again: resume)."""
+    from agents.experiments.rl_report import write_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    models = _models(out, cfg)
+    todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=ctx) as pool:
-        futures = [pool.submit(_job, t, v, s, model, models, out, cfg) for t, v, s in todo]
+    with ProcessPoolExecutor(max_workers=max(1, cfg.jobs), mp_context=ctx) as pool:
+        futures = [pool.submit(_job, t, v, s, models, out, cfg) for t, v, s in todo]
         with ProgressBar("train agents", len(futures), unit="agent") as bar:
             for _ in as_completed(futures):
                 bar.advance()
+    runs: dict[str, dict[str, list[dict]]] = {}
     for (task, variant, _), fut in zip(todo, futures, strict=True):
-        results.setdefault(task, {}).setdefault(variant, []).append(fut.result())
-    meta = {"timesteps": timesteps, "seeds": seeds, "episodes": episodes, "model": model, "points": points}
-    atomic_write_text(out / "results.json", json.dumps({"meta": meta, "results": results}, indent=2))
-    write_report(out, results, meta)
-    return results
+        runs.setdefault(task, {}).setdefault(variant, []).append(fut.result())
+    pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in cfg.tasks}
+    data = summarise(runs, pilot, cfg)
+    atomic_write_text(out / "results.json", json.dumps(data, indent=2))
+    write_report(out, data)
+    return data
 
 
-def write_report(out: Path, results: dict, meta: dict) -> None:
-    import matplotlib.pyplot as plt
+def gap_closed(by_variant: dict[str, dict[str, float]], key: str = "mean_return") -> float:
+    """Share of the ellipse-to-state gap the GP-belief agent closes (1: as good as the state)."""
+    state, ell, belief = (by_variant[v][key] for v in ("state", "ellipses", "belief"))
+    return float((belief - ell) / (state - ell)) if state != ell else float("nan")
 
-    from estimator_service.plots import save_figure
 
-    lines = [
-        "# What filtering is worth to a learned controller",
-        "",
-        f"PPO, {meta['timesteps']} environment steps per agent, {meta['seeds']} seed(s), each agent "
-        f"evaluated on the same {meta['episodes']} held-out episodes (deterministic policy). Observations: "
-        f"`state` = true state (upper bound), `belief` = GP-EKF belief (mean + log std; {meta['model']} GP "
-        f"models trained on {meta['points']} points of a 10-minute scripted flight), `belief-param` = "
-        "parametric EKF belief, "
-        "`ellipses` = raw camera ellipses + last action. Every variant also sees the goal.",
-        "",
-        "| task | observation | mean return | +- (across seeds) | success rate | belief position RMS (mm) |",
-        "| --- | --- | ---: | ---: | ---: | ---: |",
-    ]
-    fig, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4), squeeze=False)
-    for ax, (task, by_var) in zip(axes[0], results.items(), strict=True):
-        means, errs = [], []
-        for variant in VARIANTS:
-            runs = by_var.get(variant, [])
-            r = np.array([x["mean_return"] for x in runs])
-            succ = np.mean([x["success_rate"] for x in runs])
-            rms = (
-                np.nanmean([x["belief_position_rms_mm"] for x in runs])
+def summarise(
+    runs: dict[str, dict[str, list[dict]]], pilot: dict[str, dict], cfg: RLSettings
+) -> dict[str, Any]:
+    """``results.json``: per task and variant the seeds' mean success rate and return (and the
+    runs), the pilot's figures, the gap closed and the issue's targets."""
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    for task, by_variant in runs.items():
+        for variant, rs in by_variant.items():
+            r = np.array([x["mean_return"] for x in rs])
+            results.setdefault(task, {})[variant] = {
+                "success_rate": float(np.mean([x["success_rate"] for x in rs])),
+                "mean_return": float(r.mean()),
+                "return_spread_across_seeds": float(r.std()),
+                "belief_position_rms_mm": float(np.nanmean([x["belief_position_rms_mm"] for x in rs]))
                 if variant.startswith("belief")
-                else np.nan
-            )
-            lines.append(
-                f"| {task} | {variant} | {r.mean():.1f} | {r.std():.1f} | {succ:.2f} | "
-                f"{'-' if np.isnan(rms) else f'{rms:.0f}'} |"
-            )
-            means.append(r.mean())
-            errs.append(r.std())
-        ax.bar(VARIANTS, means, yerr=errs, color=["tab:green", "tab:blue", "tab:orange", "tab:red"])
-        ax.set(title=task, ylabel="evaluation return")
-        ax.tick_params(axis="x", rotation=20)
-    fig.tight_layout()
-    save_figure(fig, out / "returns.png")
-    lines += ["", "![returns](returns.png)", ""]
-    atomic_write_text(out / "report.md", "\n".join(lines))
+                else None,
+                "runs": rs,
+            }
+    targets: dict[str, Any] = {}
+    if "hover" in results and "state" in results["hover"]:
+        targets["hover_state_success_ge_0.9"] = results["hover"]["state"]["success_rate"] >= 0.9
+    if "waypoint" in results and "state" in results["waypoint"]:
+        targets["waypoint_state_beats_pilot"] = (
+            results["waypoint"]["state"]["mean_return"] > pilot["waypoint"]["mean_return"]
+        )
+    gaps = {}
+    for task, by_variant in results.items():
+        if {"state", "ellipses", "belief"} <= set(by_variant):
+            gaps[task] = gap_closed(by_variant)
+            targets[f"{task}_belief_closes_0.8_of_gap"] = gaps[task] >= 0.8
+    meta = {**asdict(cfg), "eval_seed": EVAL_SEED, "world": "lab (the default)"}
+    return {"meta": meta, "pilot": pilot, "results": results, "gap_closed": gaps, "targets": targets}
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out", type=Path, default=Path("docs/results/rl"), help="output folder")
+    p.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
     p.add_argument(
-        "--timesteps", type=int, default=300_000, help="PPO steps per agent (hover is learned by ~250k)"
+        "--timesteps", type=int, default=None, help="steps per agent (default: the hyperparameter file's)"
     )
-    p.add_argument("--n-envs", type=int, default=4, help="environments per PPO rollout")
     p.add_argument("--seeds", type=int, default=3, help="seeds per (task, variant)")
-    p.add_argument("--episodes", type=int, default=10, help="evaluation episodes per agent")
+    p.add_argument("--episodes", type=int, default=20, help="evaluation episodes per agent")
     p.add_argument("--tasks", default="hover,waypoint", help="comma-separated tasks")
+    p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated observation variants")
     p.add_argument("--points", type=int, default=600, help="GP training points")
     p.add_argument(
-        "--model",
-        default="sparse",
-        choices=("gp", "egp", "sparse"),
-        help="GP model kind of the belief variant (sparse: 50 pseudo-inputs, ~3x the exact GP's env steps/s)",
-    )
+        "--model", default="sparse", choices=("gp", "egp", "sparse"),
+        help="GP model kind of the belief variant (sparse: 50 pseudo-inputs)",
+    )  # fmt: skip
     p.add_argument("--jobs", type=int, default=2, help="agents trained at once (one core each)")
+    p.add_argument("--tensorboard", action="store_true", help="SB3 TensorBoard logs under <out>/tensorboard")
+    p.add_argument(
+        "--agent-data", action="store_true", help="also run the agent-data loop (hover state agent)"
+    )
     a = p.parse_args(argv)
-    tasks = tuple(a.tasks.split(","))
-    run(a.out, a.timesteps, a.seeds, a.episodes, tasks, a.points, a.n_envs, a.model, a.jobs)
+    cfg = RLSettings(
+        a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),
+        a.points, a.model, a.jobs, a.tensorboard,
+    )  # fmt: skip
+    run(a.out, cfg)
+    if a.agent_data:
+        from agents.experiments.agent_data import agent_data_loop
+
+        agent_data_loop(a.out, a.out / "agents" / "hover-state-0" / "model.zip")
     print(f"wrote {a.out / 'report.md'}")
     return 0
 

@@ -28,7 +28,15 @@ from agents.rl.registry import TASK_ENVS, agent_env_id, episode_success
 from agents.rl.wrappers import VARIANTS, make_belief_env
 from estimator_service.files import atomic_write_text
 
-__all__ = ["AgentPolicy", "AgentSpec", "evaluate_agent", "load_agent", "make_vec", "train_agent"]
+__all__ = [
+    "AgentPolicy",
+    "AgentSpec",
+    "evaluate_agent",
+    "evaluate_pilot",
+    "load_agent",
+    "make_vec",
+    "train_agent",
+]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
 
@@ -224,25 +232,51 @@ def evaluate_agent(
     path: str | Path, episodes: int = 5, seed: int = 1000, on_episode: Callable[[int], None] | None = None,
     models: str | Path | None = None,
 ) -> dict[str, float]:  # fmt: skip
-    """Mean return, task success (hover: final distance < 0.5 m; waypoint: all reached) and,
-    for belief agents, the RMS position error of the belief, over ``episodes`` (``models``
-    overrides the agent's model folder)."""
+    """Mean return, task success (:func:`~agents.rl.registry.episode_success`) and, for
+    belief agents, the RMS position error of the belief, over ``episodes`` episodes seeded
+    ``seed``, ``seed + 1``, ... (``models`` overrides the agent's model folder)."""
     agent, spec = load_agent(path, models)
     env = make_env(AgentSpec(**{**asdict(spec), "seed": seed}))
+
+    def act(obs: Any, info: dict[str, Any]) -> Any:
+        return agent.predict(obs, deterministic=True)[0]
+
+    return _evaluate(env, act, spec.task, episodes, seed, on_episode)
+
+
+def evaluate_pilot(task: str, episodes: int = 5, seed: int = 1000) -> dict[str, float]:
+    """:func:`evaluate_agent`'s figures for the hand-written :class:`~agents.pilots.WaypointPilot`
+    flying on the true state towards the goal, on the same episodes."""
+    import gymnasium as gym
+
+    from agents.pilots import WaypointPilot
+
+    pilot = WaypointPilot()
+    env = gym.make(TASK_ENVS[task])
+
+    def act(obs: Any, info: dict[str, Any]) -> Any:
+        return pilot.act(info["state"], info["goal"])
+
+    return _evaluate(env, act, task, episodes, seed, None)
+
+
+def _evaluate(
+    env: Any, act: Callable[[Any, dict[str, Any]], Any], task: str, episodes: int, seed: int,
+    on_episode: Callable[[int], None] | None,
+) -> dict[str, float]:  # fmt: skip
     returns, success, err2, n = [], [], 0.0, 0
     for ep in range(episodes):
         obs, info = env.reset(seed=seed + ep)
         done, total = False, 0.0
         while not done:
-            action, _ = agent.predict(obs, deterministic=True)
-            obs, r, terminated, truncated, info = env.step(action)
+            obs, r, terminated, truncated, info = env.step(act(obs, info))
             total += float(r)
             done = terminated or truncated
             if "belief_mean" in info:
                 err2 += float(np.sum((info["belief_mean"][:3] - info["state"][:3]) ** 2))
                 n += 1
         returns.append(total)
-        success.append(episode_success(spec.task, terminated, info))
+        success.append(episode_success(task, terminated, info))
         if on_episode:
             on_episode(ep + 1)
     env.close()

@@ -1,0 +1,107 @@
+"""The RL experiment's report: ``report.md``, ``learning_curves.png`` and ``returns.png``
+from ``results.json``'s data and the agents' evaluation logs (``evaluations.npz``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator_service.files import atomic_write_text
+
+__all__ = ["learning_curves", "write_report"]
+
+COLOURS = {"state": "tab:green", "belief": "tab:blue", "belief-param": "tab:orange", "ellipses": "tab:red"}
+
+
+def learning_curves(out: Path, task: str, variant: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds,
+    cut to the evaluations every seed has; None without logs."""
+    logs = sorted((out / "agents").glob(f"{task}-{variant}-*/evaluations.npz"))
+    data = [np.load(f) for f in logs]
+    if not data:
+        return None
+    e = min(len(d["timesteps"]) for d in data)
+    return data[0]["timesteps"][:e], np.stack([d["results"][:e].mean(axis=1) for d in data])
+
+
+def _figures(out: Path, data: dict[str, Any]) -> None:
+    import matplotlib.pyplot as plt
+
+    from estimator_service.plots import save_figure
+
+    tasks = list(data["results"])
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        for variant in data["results"][task]:
+            curve = learning_curves(out, task, variant)
+            if curve is None:
+                continue
+            steps, r = curve
+            ax.plot(steps, r.mean(axis=0), color=COLOURS.get(variant), label=variant)
+            ax.fill_between(steps, r.min(axis=0), r.max(axis=0), color=COLOURS.get(variant), alpha=0.2)
+        ax.axhline(data["pilot"][task]["mean_return"], color="k", ls="--", label="WaypointPilot")
+        ax.set(title=task, xlabel="environment steps", ylabel="evaluation return (mean, min-max over seeds)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out / "learning_curves.png")
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 4), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        by_var = data["results"][task]
+        names = list(by_var)
+        ax.bar(
+            names,
+            [by_var[v]["mean_return"] for v in names],
+            yerr=[by_var[v]["return_spread_across_seeds"] for v in names],
+            color=[COLOURS.get(v) for v in names],
+        )
+        ax.axhline(data["pilot"][task]["mean_return"], color="k", ls="--")
+        ax.set(title=task, ylabel="evaluation return")
+        ax.tick_params(axis="x", rotation=20)
+    fig.tight_layout()
+    save_figure(fig, out / "returns.png")
+
+
+def write_report(out: Path, data: dict[str, Any]) -> None:
+    """``report.md`` with the results table, the gap closed, the targets and the figures."""
+    meta = data["meta"]
+    budget = meta["timesteps"] or "the hyperparameter file's"
+    lines = [
+        "# What filtering is worth to a learned controller",
+        "",
+        f"{meta['algo'].upper()} with `hyperparams/{meta['algo']}.yml`, {budget} environment steps per "
+        "agent, "
+        f"{meta['seeds']} seed(s), each agent evaluated on the same {meta['episodes']} held-out episodes "
+        f"(deterministic policy), world: {meta['world']}. Observations: `state` = true state (upper bound), "
+        f"`belief` = GP-EKF belief (mean + log std; {meta['model']} GP models, {meta['points']} points of a "
+        "10-minute scripted flight, cross-fitted noise calibration), `belief-param` = parametric EKF belief, "
+        "`ellipses` = raw camera ellipses + last action. Every variant also sees the goal. The hand-written "
+        "`WaypointPilot` flies the same episodes on the true state.",
+        "",
+        "| task | observation | success rate | mean return | +- (across seeds) | belief position RMS (mm) |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for task, by_var in data["results"].items():
+        p = data["pilot"][task]
+        pilot = f"{p['success_rate']:.2f} | {p['mean_return']:.1f}"
+        lines.append(f"| {task} | WaypointPilot (true state) | {pilot} | - | - |")
+        for variant, r in by_var.items():
+            rms = r["belief_position_rms_mm"]
+            lines.append(
+                f"| {task} | {variant} | {r['success_rate']:.2f} | {r['mean_return']:.1f} | "
+                f"{r['return_spread_across_seeds']:.1f} | {'-' if rms is None else f'{rms:.0f}'} |"
+            )
+    lines += ["", "Gap closed by the GP-belief agent (ellipses -> state, on mean return): "]
+    lines += [f"- {task}: {g:.2f}" for task, g in data["gap_closed"].items()]
+    lines += ["", "Targets (issue 22): "]
+    lines += [f"- `{name}`: {'met' if ok else 'NOT met'}" for name, ok in data["targets"].items()]
+    agent_data = out / "agent_data.json"
+    if agent_data.exists():
+        from agents.experiments.agent_data import agent_data_lines
+
+        lines += ["", *agent_data_lines(json.loads(agent_data.read_text()))]
+    lines += ["", "![learning curves](learning_curves.png)", "", "![returns](returns.png)", ""]
+    _figures(out, data)
+    atomic_write_text(out / "report.md", "\n".join(lines))
