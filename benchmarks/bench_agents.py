@@ -16,6 +16,8 @@ import json
 import tempfile
 import time
 
+from machine import limits
+
 from agents.rl import AgentSpec, make_vec
 from agents.sim import collect_flight
 from estimator_service.training import TrainSettings, train_models
@@ -59,14 +61,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 ("belief_sparse", "belief", "sparse"),
             )
         }
+        n_batched = 2 if args.smoke else BATCHED_ENVS
         batched = {
-            name: throughput(AgentSpec(variant=v, model="gp", models=tmp), steps, BATCHED_ENVS)
+            name: throughput(AgentSpec(variant=v, model="gp", models=tmp), steps, n_batched)
             for name, v in (("state", "state"), ("belief", "belief"))
         }
     for name, r in rates.items():
         print(f"PPO on {name:14s}: {r:8.1f} env steps/s")
     for name, r in batched.items():
-        print(f"PPO on {name:14s}: {r:8.1f} env steps/s ({BATCHED_ENVS} envs, batched)")
+        print(f"PPO on {name:14s}: {r:8.1f} env steps/s ({n_batched} envs, batched)")
     out = {
         "state_steps_per_s": round(rates["state"], 1),
         "belief_steps_per_s": round(rates["belief"], 1),
@@ -76,9 +79,10 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "batched_state_steps_per_s": round(batched["state"], 1),
         "batched_belief_steps_per_s": round(batched["belief"], 1),
         "batched_belief_to_state_ratio": round(batched["belief"] / batched["state"], 3),
-        "batched_envs": BATCHED_ENVS,
+        "batched_envs": n_batched,
         "gp_points": points,
     }
+    out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(out))
     return out
 

@@ -28,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from machine import limits
 
 from agents.sim import collect_flight
 from estimator_service.calibrate import calibrate_all, calibration_rows
@@ -119,6 +120,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({"summary": out, "runs": {"/".join(k): v for k, v in res.items()},
                                         "pf": pf}, indent=2) + "\n")  # fmt: skip
+    out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(out))
     return out
 

@@ -14,6 +14,7 @@ import time
 
 import gymnasium as gym
 import numpy as np
+from machine import limits
 from threadpoolctl import threadpool_limits
 
 import gpbf_env  # noqa: F401
@@ -63,6 +64,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "lab_single_target_ratio": round(lab_single / 2000, 2),
         "lab_batched_target_ratio": round(lab_batched / 20000, 2),
     }
+    result.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(result))
     return result
 

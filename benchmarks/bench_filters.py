@@ -9,18 +9,21 @@ scikit-learn ``GaussianProcessRegressor`` objects (one per output, same hyperpar
 and Python loops: EKF Jacobians by central differences, UKF sigma points one at a time,
 PF particles batched per output GP. The sparse baseline is an sklearn GP on the m = 50
 pseudo-inputs (the same O(m) / O(m^2) prediction cost). Paper Table 9 (MATLAB, 2008
-Xeon): EKF 0.29 s, UKF 1.28 s, PF 449 s (exact) / 106 s (sparse). The last output line
-is one JSON object.
+Xeon): EKF 0.29 s, UKF 1.28 s, PF 449 s (exact) / 106 s (sparse). The machine's limits are
+measured in the same run (``benchmarks/machine.py``) and each filter's time is printed over
+the limit that bounds it. The last output line is one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
 
 import numpy as np
+from machine import dgemm_gflops, read_gbs, triangular_bytes
 
 from estimator_service.filters import EKF, PF, UKF, GaussianBelief
 from estimator_service.gp import ExactGP, Scaler, SparseGP
@@ -176,8 +179,43 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
               f"sklearn+loops {t['base'] * 1e3:9.1f} ms   speed-up {speed:6.1f}x")  # fmt: skip
         result[f"{name}_ms"] = round(t["ours"] * 1e3, 3)
         result[f"speedup_{name}"] = round(speed, 1)
+    result.update(_limits(result, ours, belief, u, z, valid, reps, particles, args.smoke or args.quick))
     print(json.dumps(result))
     return result
+
+
+def _limits(result, ours, belief, u, z, valid, reps, particles, short) -> dict[str, float]:
+    """This machine's limits (measured now) and each filter's ratio to the one that bounds
+    it: the EKF streams its 22 triangular factors once (bandwidth), the exact PF does
+    ``(NX + NZ) (n^2 M + 4 n M)`` flops of triangular solves and kernels (dgemm rate); and
+    the PF's cost per particle from 500 to 4,000 particles (largest over smallest)."""
+    mm, bw = dgemm_gflops(reps), read_gbs(reps)
+    ekf_limit = triangular_bytes(N_TRAIN, NX + NZ) / (bw * 1e9)
+    flops = (NX + NZ) * (N_TRAIN**2 * particles + 4 * N_TRAIN * particles)
+    pf_limit = flops / (mm * 1e9)
+    counts = (100, 200, 400) if short else (500, 1000, 2000, 4000)
+    per = {}
+    for m in counts:
+        filt = dataclasses.replace(ours["pf_exact"], n_particles=m)
+        prng = np.random.default_rng(1)
+        start = filt.initial(belief, prng)
+        step = lambda f=filt, b=start, prng=prng: f.step(b, u, z, valid, prng)  # noqa: E731
+        per[m] = time_steps(step, max(1, reps // 4)) / m
+    ekf_ratio = result["ekf_ms"] / 1e3 / ekf_limit
+    pf_ratio = result["pf_exact_ms"] / 1e3 / pf_limit
+    print(f"limits: dgemm {mm:.1f} GFLOP/s, read {bw:.2f} GB/s; EKF {ekf_ratio:.2f}x its bandwidth limit "
+          f"({ekf_limit * 1e3:.2f} ms), exact PF {pf_ratio:.2f}x its flop limit ({pf_limit * 1e3:.0f} ms); "
+          "PF per particle " + ", ".join(f"{m}: {t * 1e6:.0f} us" for m, t in per.items()))  # fmt: skip
+    return {
+        "dgemm_gflops": round(mm, 1),
+        "read_gbs": round(bw, 2),
+        "ekf_bw_limit_ms": round(ekf_limit * 1e3, 3),
+        "ekf_ratio_to_bw_limit": round(ekf_ratio, 2),
+        f"pf_exact_{particles}_flop_limit_ms": round(pf_limit * 1e3, 1),
+        f"pf_exact_{particles}_ratio_to_flop_limit": round(pf_ratio, 2),
+        "pf_per_particle_us": {str(m): round(t * 1e6, 2) for m, t in per.items()},
+        "pf_per_particle_spread": round(max(per.values()) / min(per.values()), 2),
+    }
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ import zenoh
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_filters as bf
 import service_tools
+from machine import limits
 from service_tools import (
     WARM_UP,
     echo_floor,
@@ -267,6 +268,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "blimps_over_echo": round(best_sparse / best_echo, 3) if best_echo else None,
         "overhead_over_zenoh_floor": round(res["ekf_overhead_p50_ms"] / res["ekf_zenoh_floor_ms"], 3),
     }
+    out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(out))
     return out
 

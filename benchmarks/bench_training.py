@@ -26,7 +26,7 @@ import scipy.linalg as sla
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_gp import best_time
+from machine import best_time, limits
 
 from estimator_service.gp import exact_nll, fit_exact, sparse_nll
 from estimator_service.gp.linalg import chol_inverse
@@ -78,6 +78,7 @@ def main() -> dict:
         "subset_fit_speedup": round(fits["all_points"][0] / fits["subset_300"][0], 2),
         "subset_to_full_rms_ratio": round(fits["subset_300"][1] / fits["all_points"][1], 3),
     }
+    result.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(result))
     return result
 

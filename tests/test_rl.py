@@ -290,9 +290,10 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     agent-data table are written."""
     import json
     import shutil
+    from dataclasses import replace
 
     from agents.experiments.agent_data import agent_data_loop
-    from agents.experiments.rl import RLSettings, run
+    from agents.experiments.rl import RLSettings, report_existing, run
     from agents.experiments.rl_report import write_report
 
     shutil.copytree(models, tmp_path / "models")
@@ -307,6 +308,9 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     assert all(0 <= hover[v]["success_rate"] <= 1 and np.isfinite(hover[v]["mean_return"]) for v in hover)
     assert np.isfinite(data["pilot"]["hover"]["mean_return"]) and "hover" in data["gap_closed"]
     assert "hover_state_success_ge_0.9" in data["targets"]
+    partial = report_existing(tmp_path, replace(cfg, variants=("state", "belief-param")))
+    assert partial["meta"]["not_trained"] == ["hover-belief-param-0"]
+    assert set(partial["results"]["hover"]) == {"state"}
     agent = tmp_path / "agents" / "hover-state-0" / "model.zip"
     loop = agent_data_loop(tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, points=40)
     assert set(loop["tracking"]) == {"scripted", "scripted+agent"} and loop["heldout_episodes"] >= 1

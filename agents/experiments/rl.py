@@ -29,7 +29,7 @@ from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["RLSettings", "gap_closed", "main", "run", "summarise"]
+__all__ = ["RLSettings", "gap_closed", "main", "report_existing", "run", "summarise"]
 
 EVAL_SEED = 5000  # the held-out episodes every agent and the pilot fly
 CURVE_POINTS = 10  # evaluations during training
@@ -115,6 +115,29 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     return data
 
 
+def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
+    """``results.json`` and the report from the agents already trained under ``out`` (those
+    with ``result.json``; the others are left out and named in the report's meta)."""
+    from agents.experiments.rl_report import write_report
+
+    runs: dict[str, dict[str, list[dict]]] = {}
+    missing = []
+    for task in cfg.tasks:
+        for variant in cfg.variants:
+            for seed in range(cfg.seeds):
+                done = out / "agents" / f"{task}-{variant}-{seed}" / "result.json"
+                if done.exists():
+                    runs.setdefault(task, {}).setdefault(variant, []).append(json.loads(done.read_text()))
+                else:
+                    missing.append(f"{task}-{variant}-{seed}")
+    pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in runs}
+    data = summarise(runs, pilot, cfg)
+    data["meta"]["not_trained"] = missing
+    atomic_write_text(out / "results.json", json.dumps(data, indent=2))
+    write_report(out, data)
+    return data
+
+
 def gap_closed(by_variant: dict[str, dict[str, float]], key: str = "mean_return") -> float:
     """Share of the ellipse-to-state gap the GP-belief agent closes (1: as good as the state)."""
     state, ell, belief = (by_variant[v][key] for v in ("state", "ellipses", "belief"))
@@ -181,7 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),
         a.points, a.model, a.jobs, a.tensorboard,
     )  # fmt: skip
-    run(a.out, cfg)
+    if a.report_only:
+        report_existing(a.out, cfg)
+    else:
+        run(a.out, cfg)
     if a.agent_data:
         from agents.experiments.agent_data import agent_data_loop
 

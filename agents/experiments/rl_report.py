@@ -93,6 +93,8 @@ def write_report(out: Path, data: dict[str, Any]) -> None:
                 f"| {task} | {variant} | {r['success_rate']:.2f} | {r['mean_return']:.1f} | "
                 f"{r['return_spread_across_seeds']:.1f} | {'-' if rms is None else f'{rms:.0f}'} |"
             )
+    if meta.get("not_trained"):
+        lines += ["", f"Not trained (compute): {', '.join(meta['not_trained'])}."]
     lines += ["", "Gap closed by the GP-belief agent (ellipses -> state, on mean return): "]
     lines += [f"- {task}: {g:.2f}" for task, g in data["gap_closed"].items()]
     lines += ["", "Targets (issue 22): "]
