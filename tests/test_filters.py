@@ -247,11 +247,10 @@ def test_non_finite_prediction_keeps_the_belief_and_flags_divergence(cls) -> Non
     assert info.diverged and post is PRIOR
     again, info2 = filt.step(post, np.zeros(2), np.zeros(3), None)  # and the next step too
     assert info2.diverged and np.all(np.isfinite(again.cov))
-    if cls is EKF:
-        (b, i), (_, i2) = filt.step_many(
-            [PRIOR, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
-        )
-        assert i.diverged and i2.diverged and b is PRIOR
+    (b, i), (_, i2) = filt.step_many(
+        [PRIOR, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
+    )
+    assert i.diverged and i2.diverged and b is PRIOR
 
 
 def test_implausible_innovation_is_flagged() -> None:
@@ -326,9 +325,10 @@ def test_kalman_roughening_keeps_the_gaussian_posterior_spread_under_a_sharp_lik
         PF(PRED, OBS, roughen_cov="prior")
 
 
-def test_batched_ekf_step_equals_one_blimp_at_a_time() -> None:
-    """The service batches many blimps' EKF steps into one GP call: same beliefs, any
-    camera subset per blimp (none, one camera, both), up to rounding."""
+@pytest.mark.parametrize(("cls", "noise"), [(EKF, None), (UKF, "mean"), (UKF, "sigma")])
+def test_batched_kalman_step_equals_one_blimp_at_a_time(cls, noise) -> None:
+    """The service and the batched belief env step many blimps' EKFs or UKFs with one GP
+    call: same beliefs, any camera subset per blimp (none, one camera, both), up to rounding."""
     from estimator_service.gp import ExactGP, Scaler
     from estimator_service.models import GPObservationModel, GPPredictionModel
 
@@ -341,7 +341,8 @@ def test_batched_ekf_step_equals_one_blimp_at_a_time() -> None:
     one = lambda d: Scaler(np.zeros(d), np.ones(d))  # noqa: E731
     gp_p = ExactGP.from_theta(x, 0.1 * np.tanh(x[:, :nx]), theta_p, one(nx + nu), one(nx))
     gp_o = ExactGP.from_theta(xo, np.tanh(xo @ rng.normal(size=(nx, nz))), theta_o, one(nx), one(nz))
-    ekf = EKF(GPPredictionModel(gp_p, nx), GPObservationModel(gp_o))
+    kw = {} if noise is None else {"noise": noise}
+    ekf = cls(GPPredictionModel(gp_p, nx), GPObservationModel(gp_o), **kw)
     b = 9
     beliefs = [
         GaussianBelief(rng.normal(size=nx) * 0.5, np.diag(rng.uniform(0.01, 0.1, nx))) for _ in range(b)

@@ -105,10 +105,10 @@ def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, 
     belief envs: observations, rewards, dones, terminal observations, episode records and
     beliefs over 300 steps with crashes and truncations (240 steps) of every blimp.
 
-    The simulator and the per-blimp UKF path are equal bit for bit. A batched model call
-    rounds differently from one query, and this 60-point GP-EKF, flown far outside its
-    data by random actions, grows that rounding to at most 9.4e-7 (of the covariance's
-    largest entry, or metres) in 300 steps; the parametric EKF to 2.9e-9."""
+    The simulator is equal bit for bit. A batched model call rounds differently from one
+    query, and this 60-point GP-EKF, flown far outside its data by random actions, grows
+    that rounding to at most 9.4e-7 (of the covariance's largest entry, or metres) in 300
+    steps; the parametric EKF to 2.9e-9."""
     spec = AgentSpec(variant=variant, models=models, filter=filt, seed=7)
     n = 3
     batched, single = make_vec(spec, n, batched=True), make_vec(spec, n, batched=False)

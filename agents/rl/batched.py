@@ -5,10 +5,10 @@ Blimp ``i`` of ``BeliefVecEnv(variant, N)`` seeded ``s`` gives the observations,
 dones and terminal observations that SB3's ``DummyVecEnv`` of ``N``
 :class:`~agents.rl.wrappers.BeliefObservation` envs seeded ``s + i`` gives (the
 one-at-a-time path), to rounding: the simulator is the same arithmetic
-(:class:`~gpbf_env.BlimpVectorEnv` with same-step autoreset), the GP-EKF's batched step
-(:meth:`~estimator_service.filters.EKF.step_many`) equals its single step up to the
-rounding of a batched GP call, and the innovation gate is the service's. Filters without a
-batched step (UKF, PF) are stepped per blimp with :func:`gated_step`.
+(:class:`~gpbf_env.BlimpVectorEnv` with same-step autoreset), the GP-EKF's and GP-UKF's
+batched steps (``step_many``: one model call for all blimps) equal their single steps up to
+the rounding of a batched GP call, and the innovation gate is the service's. The PF, which
+has no batched step, is stepped per blimp with :func:`gated_step`.
 """
 
 from __future__ import annotations
@@ -203,7 +203,7 @@ class BeliefVecEnv(VecEnv):
             out = self.filter.step_many(self._beliefs, a, z, ok, gate=_gate)
             self._beliefs = [b for b, _ in out]
             return
-        for i in range(self.num_envs):  # the PF and UKF: one blimp at a time
+        for i in range(self.num_envs):  # the PF: one blimp at a time
             self._beliefs[i], _ = gated_step(
                 self.filter, self._beliefs[i], a[i], z[i], ok[i], self._rngs[i], GATE_P
             )

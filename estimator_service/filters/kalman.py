@@ -29,12 +29,6 @@ __all__ = ["EKF", "UKF", "sigma_weights"]
 FloatArray = NDArray[np.float64]
 
 
-def _valid_index(valid: NDArray[np.bool_] | None, m: int) -> NDArray[np.intp]:
-    if valid is None:
-        return np.arange(m)
-    return np.flatnonzero(valid)
-
-
 def _kalman_update(
     prior: GaussianBelief, r: FloatArray, s: FloatArray, pxz: FloatArray,
     wrap: Wrapping, joseph_h: FloatArray | None = None, r_noise: FloatArray | None = None,
@@ -91,6 +85,42 @@ class _GaussianFilter:
     def gaussian(self, belief: GaussianBelief) -> GaussianBelief:
         """The Gaussian summary of a belief: the belief itself."""
         return belief
+
+    def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
+        """:meth:`predict` of ``B`` beliefs with controls ``u (B, k)`` in one model call."""
+        raise NotImplementedError
+
+    def update_many(
+        self, priors: Sequence[GaussianBelief], z: FloatArray, valid: NDArray[np.bool_]
+    ) -> list[tuple[GaussianBelief, StepInfo]]:
+        """:meth:`update` of ``B`` beliefs with ``z, valid: (B, m)`` in one model call."""
+        raise NotImplementedError
+
+    def step_many(
+        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_],
+        gate: Callable[[StepInfo], bool] | None = None,
+    ) -> list[tuple[GaussianBelief, StepInfo]]:  # fmt: skip
+        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``.
+
+        ``gate(info)`` True refuses an update (an implausible innovation): that belief is
+        its prediction, reported with ``dof = 0`` and the refused update's NIS.
+        """
+        priors = self.predict_many(beliefs, u)
+        ok = [finite(p.mean, p.cov) for p in priors]
+        out = self.update_many(
+            [p if f else b for p, b, f in zip(priors, beliefs, ok, strict=True)],
+            z,
+            valid & np.array(ok)[:, None],
+        )
+        results = []
+        for (post, info), prior, b, f in zip(out, priors, beliefs, ok, strict=True):
+            if not f:
+                results.append((b, StepInfo(math.nan, 0, True)))
+            elif gate is not None and gate(info):
+                results.append((prior, info.refused()))
+            else:
+                results.append((post, info))
+        return results
 
     def step(
         self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
@@ -193,32 +223,6 @@ class EKF(_GaussianFilter):
                 results[i] = adapted(post, priors[i], info, self.adapt_rate, self.max_inflation), info
         return results
 
-    def step_many(
-        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_],
-        gate: Callable[[StepInfo], bool] | None = None,
-    ) -> list[tuple[GaussianBelief, StepInfo]]:  # fmt: skip
-        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``.
-
-        ``gate(info)`` True refuses an update (an implausible innovation): that belief is
-        its prediction, reported with ``dof = 0`` and the refused update's NIS.
-        """
-        priors = self.predict_many(beliefs, u)
-        ok = [finite(p.mean, p.cov) for p in priors]
-        out = self.update_many(
-            [p if f else b for p, b, f in zip(priors, beliefs, ok, strict=True)],
-            z,
-            valid & np.array(ok)[:, None],
-        )
-        results = []
-        for (post, info), prior, b, f in zip(out, priors, beliefs, ok, strict=True):
-            if not f:
-                results.append((b, StepInfo(math.nan, 0, True)))
-            elif gate is not None and gate(info):
-                results.append((prior, info.refused()))
-            else:
-                results.append((post, info))
-        return results
-
 
 def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[FloatArray, FloatArray, float]:
     """Unscented-transform weights: mean weights ``(2n+1,)``, covariance weights, ``gamma``."""
@@ -278,33 +282,68 @@ class UKF(_GaussianFilter):
         self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
     ) -> GaussianBelief:
         """Steps 2-6 of Table 3."""
+        return self.predict_many([belief], np.asarray(u, dtype=np.float64)[None])[0]
+
+    def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
+        """:meth:`predict` for ``B`` beliefs (``u: (B, k)``): every sigma point of every
+        belief through the model in one call, then each belief's moments."""
         wm, wc, _ = self._w
-        x = self.sigma_points(belief)
-        out = self.prediction.predict(x, u, var=self.noise == "sigma")
-        xk = x + out.mean
-        q = out.var.mean(axis=0) if self.noise == "sigma" else self.prediction.predict(x[:1], u).var[0]
-        mean = self._wrap.mean(xk, wm, self._wrap.state)
-        dev = self._wrap.state_diff(xk - mean)
-        cov = (dev * wc[:, None]).T @ dev + np.diag(q * belief.inflation)
-        return GaussianBelief(mean, 0.5 * (cov + cov.T), belief.inflation)
+        x = np.stack([self.sigma_points(b) for b in beliefs])  # (B, 2n + 1, n)
+        nb, ns, n = x.shape
+        out = self.prediction.predict(
+            x.reshape(nb * ns, n), np.repeat(u, ns, axis=0), var=self.noise == "sigma"
+        )
+        xk = x + out.mean.reshape(nb, ns, n)
+        if self.noise == "sigma":
+            q = out.var.reshape(nb, ns, n).mean(axis=1)
+        else:
+            q = self.prediction.predict(x[:, 0], u).var
+        results = []
+        for i, b in enumerate(beliefs):  # small algebra per belief; the model call was shared
+            mean = self._wrap.mean(xk[i], wm, self._wrap.state)
+            dev = self._wrap.state_diff(xk[i] - mean)
+            cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * b.inflation)
+            results.append(GaussianBelief(mean, 0.5 * (cov + cov.T), b.inflation))
+        return results
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
         rng: np.random.Generator | None = None,
     ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
         """Steps 7-15 of Table 3, with exactly the observation entries marked ``valid``."""
-        idx = _valid_index(valid, self.observation.obs_dim)
-        if idx.size == 0:
-            return prior, StepInfo()
+        z = np.asarray(z, dtype=np.float64)
+        v = np.ones(z.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
+        return self.update_many([prior], z[None], v[None])[0]
+
+    def update_many(
+        self, priors: Sequence[GaussianBelief], z: FloatArray, valid: NDArray[np.bool_]
+    ) -> list[tuple[GaussianBelief, StepInfo]]:
+        """:meth:`update` for ``B`` beliefs, ``z: (B, m)``, ``valid: (B, m)``: the sigma points
+        of every belief with any valid entry through the model in one call."""
+        results: list[tuple[GaussianBelief, StepInfo]] = [(p, StepInfo()) for p in priors]
+        rows = np.flatnonzero(valid.any(axis=1))
+        if rows.size == 0:
+            return results
+        x = np.stack([self.sigma_points(priors[i]) for i in rows])  # (R, 2n + 1, n)
+        nr, ns, n = x.shape
+        out = self.observation.observe(x.reshape(nr * ns, n), var=self.noise == "sigma")
+        zs_all = out.mean.reshape(nr, ns, -1)
+        if self.noise == "sigma":
+            r_all = out.var.reshape(nr, ns, -1).mean(axis=1)
+        else:
+            r_all = self.observation.observe(x[:, 0]).var
+        for j, i in enumerate(rows):
+            idx = np.flatnonzero(valid[i])
+            results[i] = self._update_one(priors[i], x[j], zs_all[j][:, idx], r_all[j, idx], z[i], idx)
+        return results
+
+    def _update_one(
+        self, prior: GaussianBelief, x: FloatArray, zs: FloatArray, r_noise: FloatArray, z: FloatArray,
+        idx: NDArray[np.intp],
+    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
+        """Steps 9-15 of Table 3 for one belief: sigma points ``x``, their predicted valid
+        observations ``zs`` and the observation noise ``r_noise`` of the valid entries ``idx``."""
         wm, wc, _ = self._w
-        x = self.sigma_points(prior)
-        out = self.observation.observe(x, var=self.noise == "sigma")
-        zs = out.mean[:, idx]
-        r_noise = (
-            out.var[:, idx].mean(axis=0)
-            if self.noise == "sigma"
-            else self.observation.observe(x[:1]).var[0, idx]
-        )
         zhat = self._wrap.mean(zs, wm, self._wrap.obs[idx])
         dz = self._wrap.obs_diff(zs - zhat, idx)
         dx = self._wrap.state_diff(x - prior.mean)
