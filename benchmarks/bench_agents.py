@@ -2,11 +2,11 @@
 
 Models come from a short scripted flight (``--quick``: 3 minutes, 300 GP points; full:
 10 minutes, 900 points, the paper's size). Throughput is environment steps per second of
-``PPO.learn``: one env stepped through the single-env wrapper (in-process GP-EKF for the
-belief variant; target belief >= 0.5x state), and 16 envs in the batched belief env (native
-batched simulator, one batched GP-EKF step for all blimps; target
-``batched_belief_to_state_ratio`` >= 0.8 with the exact GP). The last output line is one
-JSON object.
+``PPO.learn`` on one core: one env stepped through the single-env wrapper (in-process
+GP-EKF for the belief variant; target belief >= 0.5x state), and 16 envs in the batched
+belief env with the committed PPO hyperparameters (native batched simulator, one batched
+GP-EKF step for all blimps; target ``batched_belief_to_state_ratio`` >= 0.8 with the exact
+GP). The last output line is one JSON object.
 """
 
 from __future__ import annotations
@@ -17,29 +17,38 @@ import tempfile
 import time
 
 from machine import limits
+from threadpoolctl import threadpool_limits
 
-from agents.rl import AgentSpec, make_vec
+from agents.rl import AgentSpec, agent_env_id, make_vec
+from agents.rl.hyperparams import load_hyperparams
 from agents.sim import collect_flight
 from estimator_service.training import TrainSettings, train_models
 
 BATCHED_ENVS = 16
 
 
-def throughput(spec: AgentSpec, steps: int, n_envs: int = 1) -> float:
-    """Environment steps per second of ``PPO.learn``: one env through the single-env
-    wrapper, or ``n_envs`` > 1 in the batched belief env."""
+def throughput(spec: AgentSpec, steps: int, n_envs: int = 1, smoke: bool = False) -> float:
+    """Environment steps per second of ``PPO.learn`` on one core (one torch and BLAS thread,
+    as the RL experiment trains each agent): one env through the single-env wrapper, or
+    ``n_envs`` > 1 in the batched belief env with the committed ``hyperparams/ppo.yml``."""
+    import torch
     from stable_baselines3 import PPO
 
-    venv = make_vec(spec, n_envs, batched=n_envs > 1)
-    n_steps = max(256 // n_envs, 16)
-    agent = PPO(
-        "MlpPolicy", venv, n_steps=n_steps, batch_size=64, n_epochs=4, seed=0, device="cpu", verbose=0
-    )
-    agent.learn(n_steps * n_envs)  # warm-up (first rollout, torch initialisation)
-    t0 = time.perf_counter()
-    agent.learn(steps, reset_num_timesteps=False)
-    rate = steps / (time.perf_counter() - t0)
-    venv.close()
+    torch.set_num_threads(1)
+    if n_envs > 1:
+        kw = dict(load_hyperparams("ppo", agent_env_id(spec.task, spec.variant)).kwargs)
+        if smoke:
+            kw.update(n_steps=16, batch_size=32, n_epochs=1)
+    else:
+        kw = {"n_steps": 256, "batch_size": 64, "n_epochs": 4}
+    with threadpool_limits(1):
+        venv = make_vec(spec, n_envs, batched=n_envs > 1)
+        agent = PPO("MlpPolicy", venv, seed=0, device="cpu", verbose=0, **kw)
+        agent.learn(kw["n_steps"] * n_envs)  # warm-up (first rollout, torch initialisation)
+        t0 = time.perf_counter()
+        agent.learn(steps, reset_num_timesteps=False)
+        rate = steps / (time.perf_counter() - t0)
+        venv.close()
     return rate
 
 
@@ -61,9 +70,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                 ("belief_sparse", "belief", "sparse"),
             )
         }
-        n_batched = 2 if args.smoke else BATCHED_ENVS
+        n_batched, b_steps = (2, steps) if args.smoke else (BATCHED_ENVS, max(steps, 8192))  # 2 rollouts
         batched = {
-            name: throughput(AgentSpec(variant=v, model="gp", models=tmp), steps, n_batched)
+            name: throughput(AgentSpec(variant=v, model="gp", models=tmp), b_steps, n_batched, args.smoke)
             for name, v in (("state", "state"), ("belief", "belief"))
         }
     for name, r in rates.items():

@@ -53,7 +53,7 @@ def test_benchmark_quick_mode_prints_json_last(script: str) -> None:
     flag = "--smoke" if script in SMOKE else "--quick"
     out = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / script), flag],
-        check=True, capture_output=True, text=True, timeout=120,
+        check=True, capture_output=True, text=True, timeout=240,
     )  # fmt: skip
     last = json.loads(out.stdout.strip().splitlines()[-1])
     assert EXPECTED[script] <= set(last)
