@@ -93,10 +93,12 @@ def run_track(args: argparse.Namespace) -> int:
     for name, value in scores.items():
         print(f"{name:>20s}: {value:.4g}")
     if args.plot:
-        from estimator_service.plots import plot_tracking
+        from estimator_service.plots import normalised_path, plot_normalised, plot_tracking
 
-        plot_tracking(result, args.plot, title=f"GP-BayesFilter {args.filter.upper()} / {args.model}")
-        print(f"wrote {args.plot}")
+        title = f"GP-BayesFilter {args.filter.upper()} / {args.model}"
+        plot_tracking(result, args.plot, title=title)
+        plot_normalised(result, normalised_path(args.plot), title=f"{title}: normalised errors")
+        print(f"wrote {args.plot} and {normalised_path(args.plot)}")
     print(json.dumps({k: round(v, 4) for k, v in scores.items()}))
     return 0
 
@@ -155,7 +157,10 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
     add_filter_options(k)
     k.add_argument("--seed", type=seed, default=0, help="seed of the particle filter")
-    k.add_argument("--plot", type=Path, default=None, help="PNG of estimate vs truth with 3-sigma bands")
+    k.add_argument(
+        "--plot", type=Path, default=None,
+        help="PNG of estimate vs truth with 3-sigma bands (and <name>_normalised.png: error/sd per group)",
+    )  # fmt: skip
     add_quiet(k)
     k.set_defaults(func=run_track)
 

@@ -9,12 +9,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from estimator_service.files import atomic_write
-from estimator_service.tracking import TrackResult
+from estimator_service.tracking import GROUPS, TrackResult
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["plot_tracking", "save_figure"]
+__all__ = ["normalised_path", "plot_normalised", "plot_tracking", "save_figure"]
 
 #: the blimp's panels: position, yaw and two velocities
 BLIMP_PANELS = (
@@ -67,6 +67,44 @@ def plot_tracking(r: TrackResult, path: Path, dt: float | None = None, title: st
         ax.plot(t, est, "r--", lw=1.0, label="estimate")
         ax.set_ylabel(label)
     axes[0, 0].legend(loc="upper right", fontsize=8, ncol=3)
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def normalised_path(path: Path) -> Path:
+    """Where :func:`plot_normalised` writes beside a tracking plot ``path``."""
+    return path.with_name(f"{path.stem}_normalised{path.suffix or '.png'}")
+
+
+def plot_normalised(r: TrackResult, path: Path, dt: float | None = None, title: str = "") -> Path:
+    """Normalised errors ``error / sd`` of every state component, one panel per state group,
+    with the +-3 band a consistent filter stays inside on 99.7 % of steps; each panel's
+    title gives the group's fraction of steps with every component inside it."""
+    plt = _pyplot()
+    system = r.system
+    dt = (system.dt if system is not None else 0.25) if dt is None else dt
+    groups = (
+        [(g.name, list(g.indices)) for g in system.groups]
+        if system is not None
+        else [(name, list(range(sl.start, sl.stop))) for name, (sl, _) in GROUPS.items()]
+    )
+    names = system.state if system is not None else tuple(str(i) for i in range(r.mean.shape[1]))
+    t = np.arange(len(r.mean)) * dt
+    sd = np.sqrt(np.maximum(np.diagonal(r.cov, axis1=1, axis2=2), 1e-300))
+    z = r.error / sd
+    fig, axes = plt.subplots(
+        len(groups), 1, figsize=(10, 1.8 * len(groups) + 0.5), sharex=True, squeeze=False
+    )
+    for ax, (name, cols) in zip(axes[:, 0], groups, strict=True):
+        for c in cols:
+            ax.plot(t, z[:, c], lw=0.8, label=names[c])
+        ax.axhspan(-3, 3, color="tab:green", alpha=0.1, lw=0)
+        inside = float(np.mean(np.all(np.abs(z[:, cols]) <= 3, axis=1)))
+        ax.set_title(f"{name}: inside +-3 sd on {inside:.1%} of steps", fontsize=9)
+        ax.set_ylabel("error / sd")
+        ax.legend(loc="upper right", fontsize=7, ncol=len(cols))
     axes[-1, 0].set_xlabel("time (s)")
     fig.suptitle(title)
     fig.tight_layout()

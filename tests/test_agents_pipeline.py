@@ -160,6 +160,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     scores = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert scores["position_mm"] < 200 and np.isfinite(scores["mll"])
     assert png.stat().st_size > 10_000
+    assert png.with_name(f"{png.stem}_normalised.png").stat().st_size > 10_000  # error / sd per group
     assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
 
 
