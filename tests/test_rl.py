@@ -311,6 +311,14 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     partial = report_existing(tmp_path, replace(cfg, variants=("state", "belief-param")))
     assert partial["meta"]["not_trained"] == ["hover-belief-param-0"]
     assert set(partial["results"]["hover"]) == {"state"}
+    from agents.experiments.rl import main as rl_main
+
+    assert (
+        rl_main(
+            ["--out", str(tmp_path), "--seeds", "1", "--tasks", "hover", "--episodes", "1", "--report-only"]
+        )
+        == 0
+    )
     agent = tmp_path / "agents" / "hover-state-0" / "model.zip"
     loop = agent_data_loop(tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, points=40)
     assert set(loop["tracking"]) == {"scripted", "scripted+agent"} and loop["heldout_episodes"] >= 1
@@ -318,3 +326,16 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     report = (tmp_path / "report.md").read_text()
     assert "agent-data loop" in report and "WaypointPilot" in report
     assert (tmp_path / "learning_curves.png").exists() and (tmp_path / "returns.png").exists()
+
+
+def test_tensorboard_flag_logs_or_names_the_missing_package(models: str, tmp_path: Path) -> None:
+    import importlib.util
+
+    spec = AgentSpec(algo="ppo", variant="state", models=models)
+    if importlib.util.find_spec("tensorboard") is None:
+        with pytest.raises(ModuleNotFoundError, match="pip install tensorboard"):
+            train_agent(spec, 128, tmp_path / "agent", tensorboard=tmp_path / "tb", progress_bar=False)
+        assert not (tmp_path / "agent").exists()  # refused before any work
+    else:
+        train_agent(spec, 128, tmp_path / "agent", tensorboard=tmp_path / "tb", progress_bar=False)
+        assert list((tmp_path / "tb").rglob("events.out.tfevents.*"))

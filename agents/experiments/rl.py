@@ -199,6 +199,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--agent-data", action="store_true", help="also run the agent-data loop (hover state agent)"
     )
+    p.add_argument(
+        "--report-only", action="store_true",
+        help="train nothing: results and report from the agents already under --out",
+    )  # fmt: skip
     a = p.parse_args(argv)
     cfg = RLSettings(
         a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),

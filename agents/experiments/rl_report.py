@@ -19,7 +19,7 @@ COLOURS = {"state": "tab:green", "belief": "tab:blue", "belief-param": "tab:oran
 def learning_curves(out: Path, task: str, variant: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds,
     cut to the evaluations every seed has; None without logs."""
-    logs = sorted((out / "agents").glob(f"{task}-{variant}-*/evaluations.npz"))
+    logs = sorted((out / "agents").glob(f"{task}-{variant}-[0-9]*/evaluations.npz"))  # not belief-param
     data = [np.load(f) for f in logs]
     if not data:
         return None
@@ -94,7 +94,7 @@ def write_report(out: Path, data: dict[str, Any]) -> None:
                 f"{r['return_spread_across_seeds']:.1f} | {'-' if rms is None else f'{rms:.0f}'} |"
             )
     if meta.get("not_trained"):
-        lines += ["", f"Not trained (compute): {', '.join(meta['not_trained'])}."]
+        lines += ["", f"Not trained: {', '.join(meta['not_trained'])}."]
     lines += ["", "Gap closed by the GP-belief agent (ellipses -> state, on mean return): "]
     lines += [f"- {task}: {g:.2f}" for task, g in data["gap_closed"].items()]
     lines += ["", "Targets (issue 22): "]
