@@ -68,13 +68,14 @@ class BlimpVectorEnv(VectorEnv):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
-        if autoreset_mode not in modes and autoreset_mode not in [m.value for m in modes]:
-            raise ValueError(f"autoreset_mode must be one of {[m.value for m in modes]}, got {autoreset_mode!r}")
+        modes = {m.value: m for m in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)}
+        mode = autoreset_mode.value if isinstance(autoreset_mode, AutoresetMode) else autoreset_mode
+        if mode not in modes:
+            raise ValueError(f"autoreset_mode must be one of {list(modes)}, got {autoreset_mode!r}")
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.config = WorldConfig(**config)
-        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        self.autoreset_mode = modes[mode]
         self.metadata = {
             **self.metadata,
             "render_fps": round(1.0 / self.config.dt),

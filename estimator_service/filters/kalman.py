@@ -70,13 +70,19 @@ class _GaussianFilter:
     def predict(
         self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
     ) -> GaussianBelief:
-        raise NotImplementedError
+        """The prediction (EKF: Table 2 steps 2-5; UKF: Table 3 steps 2-6) as a batch of one
+        (``rng`` unused: the common filter interface)."""
+        return self.predict_many([belief], np.asarray(u, dtype=np.float64)[None])[0]
 
     def update(
         self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
         rng: np.random.Generator | None = None,
     ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        raise NotImplementedError
+        """The update (EKF: Table 2 steps 6-11; UKF: Table 3 steps 7-15) with exactly the
+        observation entries marked ``valid``, as a batch of one."""
+        z = np.asarray(z, dtype=np.float64)
+        v = np.ones(z.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
+        return self.update_many([prior], z[None], v[None])[0]
 
     def initial(self, belief: GaussianBelief, rng: np.random.Generator | None = None) -> GaussianBelief:
         """The filter's belief for a Gaussian start: the Gaussian itself."""
@@ -162,12 +168,6 @@ class EKF(_GaussianFilter):
     def __post_init__(self) -> None:
         check_adaptation(self.adapt_rate, self.max_inflation)
 
-    def predict(
-        self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
-    ) -> GaussianBelief:
-        """Steps 2-5 of Table 2 (``rng`` unused: the common filter interface)."""
-        return self.predict_many([belief], np.asarray(u, dtype=np.float64)[None])[0]
-
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
         """:meth:`predict` for ``B`` independent beliefs in one model call (``u: (B, k)``).
 
@@ -183,15 +183,6 @@ class EKF(_GaussianFilter):
         covs = 0.5 * (covs + covs.transpose(0, 2, 1))
         new_means = self._wrap.state_value(means + out.mean)
         return [GaussianBelief(m, c, f) for m, c, f in zip(new_means, covs, lam.tolist(), strict=True)]
-
-    def update(
-        self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
-        rng: np.random.Generator | None = None,
-    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Steps 6-11 of Table 2, with exactly the observation entries marked ``valid``."""
-        z = np.asarray(z, dtype=np.float64)
-        v = np.ones(z.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
-        return self.update_many([prior], z[None], v[None])[0]
 
     def update_many(
         self, priors: Sequence[GaussianBelief], z: FloatArray, valid: NDArray[np.bool_]
@@ -278,12 +269,6 @@ class UKF(_GaussianFilter):
         d = self._w[2] * l.T
         return np.concatenate([belief.mean[None], belief.mean + d, belief.mean - d])
 
-    def predict(
-        self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
-    ) -> GaussianBelief:
-        """Steps 2-6 of Table 3."""
-        return self.predict_many([belief], np.asarray(u, dtype=np.float64)[None])[0]
-
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
         """:meth:`predict` for ``B`` beliefs (``u: (B, k)``): every sigma point of every
         belief through the model in one call, then each belief's moments."""
@@ -305,15 +290,6 @@ class UKF(_GaussianFilter):
             cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * b.inflation)
             results.append(GaussianBelief(mean, 0.5 * (cov + cov.T), b.inflation))
         return results
-
-    def update(
-        self, prior: GaussianBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
-        rng: np.random.Generator | None = None,
-    ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Steps 7-15 of Table 3, with exactly the observation entries marked ``valid``."""
-        z = np.asarray(z, dtype=np.float64)
-        v = np.ones(z.shape, bool) if valid is None else np.asarray(valid, dtype=bool)
-        return self.update_many([prior], z[None], v[None])[0]
 
     def update_many(
         self, priors: Sequence[GaussianBelief], z: FloatArray, valid: NDArray[np.bool_]
