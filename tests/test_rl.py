@@ -252,6 +252,24 @@ def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Pa
             load_hyperparams("ppo", "x-v0", bad)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_hyperparams("ppo", "x-v0", tmp_path / "none.yml")
+    bad.write_text("x-v0: {}\n" + "#" * 1_000_001)  # parsing cost is bounded by a size cap
+    with pytest.raises(ValueError, match="over 1000000 bytes"):
+        load_hyperparams("ppo", "x-v0", bad)
+
+
+@pytest.mark.parametrize(
+    ("args", "field"), [(["--tasks", "hover,orbit"], "--tasks"), (["--variants", "sonar"], "--variants"),
+                        (["--seeds", "0"], "--seeds"), (["--jobs", "-1"], "--jobs")],
+)  # fmt: skip
+def test_rl_experiment_refuses_bad_options_naming_them(
+    args: list[str], field: str, tmp_path: Path, capsys
+) -> None:
+    from agents.experiments.rl import main as rl_main
+
+    with pytest.raises(SystemExit) as e:
+        rl_main(["--out", str(tmp_path / "out"), "--report-only", *args])
+    assert e.value.code == 2 and field in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # refused before any work
 
 
 @pytest.mark.parametrize(

@@ -23,8 +23,10 @@ from typing import Any
 import numpy as np
 
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
+from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
 from agents.sim import collect_flight
+from estimator_service.cli_args import checked_int
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
@@ -183,18 +185,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("docs/results/rl"), help="output folder")
     p.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
     p.add_argument(
-        "--timesteps", type=int, default=None, help="steps per agent (default: the hyperparameter file's)"
+        "--timesteps",
+        type=checked_int(1, 10**9),
+        default=None,
+        help="steps per agent (default: the hyperparameter file's)",
     )
-    p.add_argument("--seeds", type=int, default=3, help="seeds per (task, variant)")
-    p.add_argument("--episodes", type=int, default=20, help="evaluation episodes per agent")
+    p.add_argument("--seeds", type=checked_int(1, 100), default=3, help="seeds per (task, variant)")
+    p.add_argument(
+        "--episodes", type=checked_int(1, 10_000), default=20, help="evaluation episodes per agent"
+    )
     p.add_argument("--tasks", default="hover,waypoint", help="comma-separated tasks")
     p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated observation variants")
-    p.add_argument("--points", type=int, default=600, help="GP training points")
+    p.add_argument("--points", type=checked_int(10, 5000), default=600, help="GP training points")
     p.add_argument(
         "--model", default="sparse", choices=("gp", "egp", "sparse"),
         help="GP model kind of the belief variant (sparse: 50 pseudo-inputs)",
     )  # fmt: skip
-    p.add_argument("--jobs", type=int, default=2, help="agents trained at once (one core each)")
+    p.add_argument(
+        "--jobs", type=checked_int(1, 64), default=2, help="agents trained at once (one core each)"
+    )
     p.add_argument("--tensorboard", action="store_true", help="SB3 TensorBoard logs under <out>/tensorboard")
     p.add_argument(
         "--agent-data", action="store_true", help="also run the agent-data loop (hover state agent)"
@@ -204,6 +213,10 @@ def main(argv: list[str] | None = None) -> int:
         help="train nothing: results and report from the agents already under --out",
     )  # fmt: skip
     a = p.parse_args(argv)
+    for field, names, known in (("--tasks", a.tasks, TASK_ENVS), ("--variants", a.variants, VARIANTS)):
+        unknown = sorted(set(names.split(",")) - set(known))
+        if unknown:
+            p.error(f"{field}: unknown {unknown}; choose from {sorted(known)}")
     cfg = RLSettings(
         a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),
         a.points, a.model, a.jobs, a.tensorboard,

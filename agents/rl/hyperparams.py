@@ -17,7 +17,7 @@ from typing import Any
 __all__ = ["HYPERPARAMS_DIR", "Hyperparams", "load_hyperparams"]
 
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
-_ZOO_KEYS = ("n_envs", "n_timesteps", "policy")
+MAX_FILE_BYTES = 1_000_000  # the committed files are about 1.3 kB; a bound on what is parsed
 _REFUSED = ("normalize", "env_wrapper", "frame_stack", "vec_env_wrapper", "callback", "monitor_kwargs")
 
 
@@ -45,6 +45,8 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> 
     file = Path(path) if path is not None else HYPERPARAMS_DIR / f"{algo}.yml"
     if not file.is_file():
         raise FileNotFoundError(f"hyperparameter file {str(file)!r} does not exist")
+    if file.stat().st_size > MAX_FILE_BYTES:
+        raise ValueError(f"hyperparameter file {str(file)!r} is over {MAX_FILE_BYTES} bytes")
     entries = yaml.safe_load(file.read_text())
     if not isinstance(entries, dict) or env_id not in entries:
         raise KeyError(f"{file.name}: no entry for {env_id!r}")
