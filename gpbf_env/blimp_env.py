@@ -63,16 +63,18 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
     of a 100 ms window, so lagging about 46 ms). ``step``
     adds the reward components ``info["reward_alive" | "reward_distance" |
     "reward_heading" | "reward_control"]``, ``info["distance_m"]``, the distance to the goal
-    (m), ``info["success"]``, whether it is within ``reach_radius`` of the goal, and
+    (m), ``info["success"]`` (hover: within ``reach_radius`` of the goal; waypoint: every
+    waypoint of the course reached), and
     ``info["crashed"]``. :class:`~gpbf_env.vector_env.BlimpVectorEnv` returns the same
     keys batched as the ``"sync"`` vector env does, with their ``"_key"`` masks.
 
     ## Rewards
-    Dense: ``1 - distance - 0.3 |heading error| - 0.05 |a|^2`` per step (components in the
-    ``reward_*`` info entries; the +1 for staying airborne makes crashing early never
-    pay). Hover: distance to the goal and error to the goal yaw. Waypoint: distance to the
-    current waypoint and heading error to its direction, +10 on reaching a waypoint. -20
-    on a crash.
+    Dense, per step (components in the ``reward_*`` info entries; see
+    :class:`~gpbf_env.tasks.RewardWeights`). Hover: ``1 - distance - 0.3 |yaw error| -
+    0.05 |a|^2`` to the goal. Waypoint: ``1 + 10 (progress towards the current waypoint,
+    m) - 0.3 |heading error to its direction| - 0.05 |a|^2``, +10 on reaching each
+    waypoint; once the last is reached the blimp holds it (yaw error to its yaw) until the
+    time limit, so flying on always beats crashing. -20 on a crash.
 
     ## Starting State
     At rest, motors off, roll and pitch ~N(0, 0.05) rad; goals drawn uniformly in the room's
@@ -83,7 +85,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     ## Episode End
     Termination when the blimp leaves the room or its envelope touches the floor or the
-    ceiling, or (waypoint) when the last waypoint is reached. Truncation by the
+    ceiling. Truncation by the
     registered ``max_episode_steps`` (240 steps = 60 s).
 
     ## Arguments
@@ -151,7 +153,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self._state = [float(v) for v in state]
         self._motors = (0.0, 0.0, 0.0)
         self._wind = list(rng.normal(0.0, params.gust_std, size=3))
-        self._step, self._goals, self._goal_index = 0, goals, 0
+        self._step, self._goals, self._goal_index, self._finished = 0, goals, 0, False
         self._trail = [state[:3].copy()]
         self._aux = rng.spawn(1)[0]
         self._track.reset_rows(np.array([0]), state[None, :])
@@ -163,6 +165,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         cfg = self.config
         cmd = cfg.map_action(a[None, :], self._params)[0]
         knots: list[list[float]] = []
+        previous = np.array(self._state[:3])
         self._state, self._motors = rk4_step(
             self._state, self._motors, cmd.tolist(), self._wind, self._coeffs, math, knots
         )
@@ -174,21 +177,21 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self._trail.append(state[:3].copy())
         parts = task_reward(
             cfg.task, state[None, :3], state[None, 5], self._goals[None, self._goal_index],
-            a[None, :], cfg.weights,
+            a[None, :], cfg.weights, previous[None, :], np.array([self._finished]),
         )  # fmt: skip
         crashed = bool(cfg.out_of_bounds(state[None, :3])[0])
         reward = float(parts["alive"][0] + parts["distance"][0] + parts["heading"][0] + parts["control"][0])
-        reached = bool(parts["reached"][0])
-        done = crashed
-        if cfg.task == "waypoint" and reached:
-            reward += cfg.weights.reach_bonus
-            self._goal_index += 1
-            done = done or self._goal_index >= len(self._goals)
-            self._goal_index = min(self._goal_index, len(self._goals) - 1)
+        success = bool(parts["reached"][0])
+        if cfg.task == "waypoint":
+            if success and not self._finished:
+                reward += cfg.weights.reach_bonus
+                self._finished = self._goal_index + 1 >= len(self._goals)
+                self._goal_index = min(self._goal_index + 1, len(self._goals) - 1)
+            success = self._finished
         if crashed:
             reward -= cfg.weights.crash
         obs = self._observe(noise[3:])
-        return obs, reward, done, False, self._info(parts, crashed)
+        return obs, reward, crashed, False, self._info(parts, crashed, success)
 
     def render(self) -> NDArray[np.uint8] | None:
         if self.render_mode != "rgb_array":
@@ -234,7 +237,9 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self._last_obs = {"ellipses": ell[0], "valid": valid[0]}
         return {"ellipses": ell[0].copy(), "valid": valid[0].copy()}
 
-    def _info(self, parts: dict[str, Any] | None, crashed: bool = False) -> dict[str, Any]:
+    def _info(
+        self, parts: dict[str, Any] | None, crashed: bool = False, success: bool = False
+    ) -> dict[str, Any]:
         info: dict[str, Any] = {
             "state": np.array(self._state),
             "t": self._step * self.config.dt,
@@ -250,7 +255,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
                 reward_heading=float(parts["heading"][0]),
                 reward_control=float(parts["control"][0]),
                 distance_m=float(parts["distance_m"][0]),
-                success=bool(parts["reached"][0]),
+                success=success,
                 crashed=crashed,
             )
         return info

@@ -16,7 +16,21 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class RewardWeights:
-    """Weights of the dense reward ``alive - (d + w_h |heading err| + w_u |a|^2)``.
+    """Weights of the dense rewards.
+
+    Hover pays ``alive - (d + w_h |yaw err| + w_u |a|^2)`` per step. Waypoint pays
+    ``alive + w_p (d_prev - d) - w_h |heading err| - w_u |a|^2`` per step: progress
+    towards the current waypoint instead of its distance, ``reach_bonus`` per waypoint,
+    and the course's last waypoint is then held (yaw error to its yaw) until the time
+    limit. The progress term is an undiscounted potential difference (potential ``-w_p d``,
+    Ng, Harada & Russell 1999), so it sums to ``w_p (d_0 - d_end)`` per waypoint whatever
+    the path and cannot outweigh the alive bonus: flying on always beats crashing. The
+    earlier waypoint reward, ``alive - d`` per step with termination at the last
+    waypoint, was negative on most of a 1.5-3.5 m leg, so crashing early was optimal and
+    the PPO state agent learnt exactly that (return -57.6 against the pilot's -236, no
+    waypoint reached; ``docs/results/rl``). Holding instead of terminating removes the
+    opposite trap: ending the episode forfeits the alive bonus, which made stopping short
+    of the last waypoint pay.
 
     Attributes
     ----------
@@ -33,6 +47,10 @@ class RewardWeights:
         Paid once on termination (leaving the room, floor or ceiling).
     reach_radius
         Distance (m) at which a waypoint counts as reached, and hover counts as on target.
+    progress
+        Per metre of progress towards the current waypoint (waypoint task). At the
+        pilot's cruise of about 0.4 m/s (0.1 m per 0.25 s step) it pays about as much as
+        ``alive``; a 2.5 m leg is worth 2.5 reach bonuses. Fixed before any training.
     """
 
     alive: float = 1.0
@@ -41,6 +59,7 @@ class RewardWeights:
     reach_bonus: float = 10.0
     crash: float = 20.0
     reach_radius: float = 0.5
+    progress: float = 10.0
 
 
 def sample_goals(
@@ -83,8 +102,10 @@ def task_reward(
     goal: FloatArray,
     action: FloatArray,
     weights: RewardWeights,
+    previous: FloatArray | None = None,
+    holding: NDArray[np.bool_] | None = None,
 ) -> dict[str, FloatArray]:
-    """Reward components for ``N`` blimps.
+    """Reward components for ``N`` blimps (see :class:`RewardWeights`).
 
     Parameters
     ----------
@@ -97,23 +118,35 @@ def task_reward(
         Current goal (position, yaw) of each blimp.
     action: (N, 3)
         Normalised action.
+    previous: (N, 3)
+        Position one step earlier (waypoint task: the progress term; required there).
+    holding: (N,)
+        Waypoint task: the course is complete and its last waypoint is held (yaw error to
+        the goal yaw, as in hover). None: no blimp is holding.
 
     Returns
     -------
-    dict with ``alive`` (the per-step bonus), ``distance``, ``heading``, ``control`` (the
-    negative dense terms), all (N,),
-    ``distance_m`` and ``reached`` (bool, within ``reach_radius``).
+    dict with ``alive`` (the per-step bonus), ``distance`` (hover: minus the distance;
+    waypoint: the progress), ``heading``, ``control`` (the negative dense terms), all
+    (N,), ``distance_m`` and ``reached`` (bool, within ``reach_radius``).
     """
     delta = goal[:, :3] - position
     dist = np.sqrt(np.sum(delta * delta, axis=1))
     if task == "hover":
         target_yaw = goal[:, 3]
+        distance = -dist
     else:
+        if previous is None:
+            raise ValueError("task_reward: the waypoint task needs the previous positions")
+        before = np.sqrt(np.sum((goal[:, :3] - previous) ** 2, axis=1))
+        distance = weights.progress * (before - dist)
         target_yaw = np.arctan2(delta[:, 1], delta[:, 0])
+        if holding is not None:
+            target_yaw = np.where(holding, goal[:, 3], target_yaw)
     heading_err = np.abs(_wrap(yaw - target_yaw))
     return {
         "alive": np.full(dist.shape, weights.alive),
-        "distance": -dist,
+        "distance": distance,
         "heading": -weights.heading * heading_err,
         "control": -weights.control * np.sum(action * action, axis=1),
         "distance_m": dist,

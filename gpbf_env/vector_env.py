@@ -100,6 +100,7 @@ class BlimpVectorEnv(VectorEnv):
         n_goals = 1 if self.config.task == "hover" else 4
         self._goals = np.zeros((n, n_goals, 4))
         self._goal_index = np.zeros(n, dtype=np.int64)
+        self._finished = np.zeros(n, dtype=bool)
         self._autoreset = np.zeros(n, dtype=bool)
         # rendering only: last observation and position snapshots (T, N, 3), blimp i's
         # episode trail being ``_trail[_trail_start[i]:, i]``
@@ -169,6 +170,7 @@ class BlimpVectorEnv(VectorEnv):
         cfg = self.config
         cmd = np.clip(a, -1.0, 1.0) * self._scale
         knots: list[list[NDArray[np.float64]]] = []
+        previous = self._state[:3].T.copy()
         state, motors = rk4_step(
             list(self._state), self._motors, list(cmd.T), list(self._wind), self._coeffs, np, knots
         )
@@ -185,17 +187,18 @@ class BlimpVectorEnv(VectorEnv):
         self._steps[moving] += 1
         pos, yaw = self._state[:3].T, self._state[5]
         goal = self._goals[np.arange(n), self._goal_index]
-        parts = task_reward(cfg.task, pos, yaw, goal, a, cfg.weights)
+        parts = task_reward(cfg.task, pos, yaw, goal, a, cfg.weights, previous, self._finished)
         crashed = cfg.out_of_bounds(pos)
         reward = parts["alive"] + parts["distance"] + parts["heading"] + parts["control"]
-        terminated = crashed.copy()
+        parts["success"] = parts["reached"]
         if cfg.task == "waypoint":
-            reached = parts["reached"]
+            reached = parts["reached"] & ~self._finished
             reward = reward + cfg.weights.reach_bonus * reached
-            self._goal_index += reached
-            terminated |= self._goal_index >= self._goals.shape[1]
-            np.minimum(self._goal_index, self._goals.shape[1] - 1, out=self._goal_index)
+            self._finished |= reached & (self._goal_index + 1 >= self._goals.shape[1])
+            self._goal_index = np.minimum(self._goal_index + reached, self._goals.shape[1] - 1)
+            parts["success"] = self._finished.copy()
         reward = reward - cfg.weights.crash * crashed
+        terminated = crashed.copy()
         limit = self.max_episode_steps
         truncated = (self._steps >= limit) if limit is not None else np.zeros(n, dtype=bool)
         if resetting.size:
@@ -297,6 +300,7 @@ class BlimpVectorEnv(VectorEnv):
             m[rows] = 0.0
         self._steps[rows] = 0
         self._goal_index[rows] = 0
+        self._finished[rows] = False
         return noise
 
     def _record_trail(self, resetting: NDArray[np.int64]) -> None:
@@ -374,7 +378,7 @@ class BlimpVectorEnv(VectorEnv):
             "reward_heading": parts["heading"],
             "reward_control": parts["control"],
             "distance_m": parts["distance_m"],
-            "success": parts["reached"],
+            "success": parts["success"],
             "crashed": crashed,
         }
         for key, value in step_only.items():

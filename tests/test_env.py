@@ -367,3 +367,51 @@ def test_same_step_autoreset_matches_sync_vector_env(reality: str) -> None:
     assert ended >= n  # every blimp ended at least once (truncation at 30 steps)
     with pytest.raises(ValueError, match="autoreset_mode"):
         gpbf_env.BlimpVectorEnv(2, autoreset_mode="sometimes")
+
+
+def _waypoint_return(seed: int, pilot: bool) -> tuple[float, dict, int]:
+    from agents.pilots import WaypointPilot
+
+    env = gym.make("gpbf_env/BlimpWaypoint-v0")
+    _, info = env.reset(seed=seed)
+    total, steps, done, p = 0.0, 0, False, WaypointPilot()
+    dive = np.array([1.0, -1.0, 0.0], dtype=np.float32)  # full thrust tilted down: into the floor
+    while not done:
+        a = p.act(info["state"], info["goal"]).astype(np.float32) if pilot else dive
+        _, r, term, trunc, info = env.step(a)
+        total, steps, done = total + r, steps + 1, term or trunc
+    return total, info, steps
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_waypoint_flying_the_course_beats_crashing_at_once(seed: int) -> None:
+    """The waypoint reward must not make crashing optimal (the earlier ``alive - distance``
+    reward did: the pilot's course scored about -236, a dive into the floor about -30)."""
+    crash, crash_info, crash_steps = _waypoint_return(seed, pilot=False)
+    flown, info, steps = _waypoint_return(seed, pilot=True)
+    assert crash_info["crashed"] and crash_steps < 40
+    assert not info["crashed"] and steps == gpbf_env.MAX_EPISODE_STEPS  # holds the last waypoint
+    assert flown > crash + 100, (flown, crash)
+    assert info["success"] and info["waypoint_index"] == 3  # every waypoint reached
+
+
+def test_waypoint_progress_telescopes_to_the_distance_covered() -> None:
+    from agents.pilots import WaypointPilot
+
+    env = gym.make("gpbf_env/BlimpWaypoint-v0", reality="clean")
+    _, info = env.reset(seed=3)
+    weights = env.unwrapped.config.weights
+    pos, goal, pilot = info["state"][:3], info["goal"], WaypointPilot()
+    start = float(np.linalg.norm(goal[:3] - pos))
+    progress, bonus_steps, done = 0.0, 0, False
+    while not done:
+        _, r, term, trunc, info = env.step(pilot.act(info["state"], info["goal"]).astype(np.float32))
+        done = term or trunc
+        progress += info["reward_distance"]
+        dense = info["reward_alive"] + info["reward_distance"] + info["reward_heading"] + info["reward_control"]
+        bonus_steps += bool(np.isclose(r - dense, weights.reach_bonus))
+        if info["waypoint_index"] > 0:  # the first leg ended on this step
+            break
+    # the first leg's progress sums to progress weight x (start distance - end distance)
+    assert progress == pytest.approx(weights.progress * (start - info["distance_m"]), rel=1e-9)
+    assert bonus_steps == 1 and info["distance_m"] < weights.reach_radius

@@ -151,11 +151,10 @@ class BeliefVecEnv(VecEnv):
             {"TimeLimit.truncated": bool(trunc[i] and not term[i])} for i in range(self.num_envs)
         ]
         if ended.size:
-            task = self.sim.config.task
             for i in ended:
                 infos[i]["terminal_observation"] = features[i].copy()
                 last = {key: fin[key][i] for key in ("success", "crashed")}
-                infos[i]["is_success"] = episode_success(task, bool(term[i]), last)
+                infos[i]["is_success"] = episode_success(last)
             self._restart(ended, info["state"][ended])
             fresh = self._features(
                 obs["ellipses"][ended], obs["valid"][ended], info["state"][ended], info["goal"][ended], ended

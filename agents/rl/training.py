@@ -241,7 +241,7 @@ def evaluate_agent(
     def act(obs: Any, info: dict[str, Any]) -> Any:
         return agent.predict(obs, deterministic=True)[0]
 
-    return _evaluate(env, act, spec.task, episodes, seed, on_episode)
+    return _evaluate(env, act, episodes, seed, on_episode)
 
 
 def evaluate_pilot(task: str, episodes: int = 5, seed: int = 1000) -> dict[str, float]:
@@ -257,11 +257,11 @@ def evaluate_pilot(task: str, episodes: int = 5, seed: int = 1000) -> dict[str, 
     def act(obs: Any, info: dict[str, Any]) -> Any:
         return pilot.act(info["state"], info["goal"])
 
-    return _evaluate(env, act, task, episodes, seed, None)
+    return _evaluate(env, act, episodes, seed, None)
 
 
 def _evaluate(
-    env: Any, act: Callable[[Any, dict[str, Any]], Any], task: str, episodes: int, seed: int,
+    env: Any, act: Callable[[Any, dict[str, Any]], Any], episodes: int, seed: int,
     on_episode: Callable[[int], None] | None,
 ) -> dict[str, float]:  # fmt: skip
     returns, success, err2, n = [], [], 0.0, 0
@@ -276,7 +276,7 @@ def _evaluate(
                 err2 += float(np.sum((info["belief_mean"][:3] - info["state"][:3]) ** 2))
                 n += 1
         returns.append(total)
-        success.append(episode_success(task, terminated, info))
+        success.append(episode_success(info))
         if on_episode:
             on_episode(ep + 1)
     env.close()

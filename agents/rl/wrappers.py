@@ -227,7 +227,7 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if b is not None:
             info = {**info, "belief_mean": b.mean, "belief_std": np.sqrt(np.diag(b.cov))}
         if terminated or truncated:  # SB3's EvalCallback and Monitor read it
-            info = {**info, "is_success": episode_success(self.env.unwrapped.config.task, terminated, info)}
+            info = {**info, "is_success": episode_success(info)}
         return self.features(obs, info), reward, terminated, truncated, info
 
     def close(self) -> None:
