@@ -408,7 +408,9 @@ def test_waypoint_progress_telescopes_to_the_distance_covered() -> None:
         _, r, term, trunc, info = env.step(pilot.act(info["state"], info["goal"]).astype(np.float32))
         done = term or trunc
         progress += info["reward_distance"]
-        dense = info["reward_alive"] + info["reward_distance"] + info["reward_heading"] + info["reward_control"]
+        dense = (
+            info["reward_alive"] + info["reward_distance"] + info["reward_heading"] + info["reward_control"]
+        )
         bonus_steps += bool(np.isclose(r - dense, weights.reach_bonus))
         if info["waypoint_index"] > 0:  # the first leg ended on this step
             break

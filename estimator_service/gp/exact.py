@@ -20,19 +20,23 @@ from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta
 from estimator_service.gp.linalg import (
     chol_solve,
     inverse_factor,
+    inverse_sq_norms,
     robust_cholesky,
     tri_mult,
     tri_solve,
 )
+from estimator_service.gp.parallel import over_outputs
 from estimator_service.reprs import short_repr
 
 __all__ = ["ExactGP", "fit_exact", "unscale"]
 
 FloatArray = NDArray[np.float64]
-#: queries up to which the variance uses the inverse factors (n = 900, d = 15, 12 outputs, this
-#: 2-core machine, whole latent prediction: 1 query 4.65 -> 3.81 ms, 8 queries 11.6 -> 11.4 ms;
-#: for 64 queries trmm was slower than the solve, 88 -> 104 ms, so batches keep solving)
-INVERSE_MAX_QUERIES = 8
+#: queries from which a prediction with variances goes output by output over threads, the
+#: variance by row blocks of ``L^-1`` (n = 900, d = 15, 12 outputs, this 2-core machine, whole
+#: prediction, before -> after: 8 queries 12.3 -> 8.6 ms, 25: 19.2 -> 9.8, 64: 53.9 -> 16.7,
+#: 2,000: 768 -> 537); one query stays on one triangular product per output (3.9 ms, against
+#: 7.2 output by output)
+BY_OUTPUT_MIN_QUERIES = 2
 _CHUNK_BYTES = 256 * 2**20  # cap on the (P, M, n) kernel block held at once
 
 
@@ -57,11 +61,12 @@ class ExactGP:
     noise_profile: (P, n) or None
         Relative per-point training noise (heteroscedastic GP), None when homoscedastic.
     inverse: bool
-        Predictive variances of up to :data:`INVERSE_MAX_QUERIES` queries (the EKF's one)
-        from the explicit inverse factors ``L^-1`` (computed once, on the first such request,
-        per output whose factor is well conditioned; see
-        :func:`~estimator_service.gp.linalg.inverse_factor`) by a triangular product instead
-        of a triangular solve. ``tests/test_gp.py`` bounds the difference on a near-noiseless GP.
+        Predictive variances from the explicit inverse factors ``L^-1`` (computed once, on
+        the first variance request, per output whose factor is well conditioned; see
+        :func:`~estimator_service.gp.linalg.inverse_factor`): one triangular product for one
+        query, row blocks of matrix products for more (:data:`BY_OUTPUT_MIN_QUERIES`),
+        instead of a triangular solve. ``tests/test_gp.py`` bounds the difference on a
+        near-noiseless GP.
     """
 
     __repr__ = short_repr
@@ -140,14 +145,15 @@ class ExactGP:
             return tuple(
                 None if parts[0][j] is None else np.concatenate([q[j] for q in parts]) for j in range(3)
             )  # type: ignore[return-value]
+        if return_var and xs.shape[0] >= BY_OUTPUT_MIN_QUERIES:
+            return self._latent_by_output(xs, return_jac)
         ks, mean, jac = self._kernel(xs, return_jac)
-        sf2 = np.exp(2.0 * self.theta[:, -2])
         var = None
-        if return_var:
+        if return_var:  # one query: the factors are streamed once, output after output
+            sf2 = np.exp(2.0 * self.theta[:, -2])
             var = np.empty_like(mean)
-            small = xs.shape[0] <= INVERSE_MAX_QUERIES
-            inv = self.inverse_factors() if self.inverse and small else [None] * p_out
-            for p in range(p_out):  # one BLAS triangular product (or solve) per output, all queries
+            inv = self.inverse_factors() if self.inverse else [None] * p_out
+            for p in range(p_out):
                 if inv[p] is not None:
                     v = tri_mult(inv[p], ks[p].T, overwrite_b=True)
                 else:
@@ -155,6 +161,33 @@ class ExactGP:
                 var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)
             np.maximum(var, 0.0, out=var)
         return mean, var, jac
+
+    def _latent_by_output(
+        self, xs: FloatArray, return_jac: bool
+    ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
+        """Mean, variance ``(M, P)`` and Jacobian ``(M, P, d)``, output by output (kernel
+        block, mean, variance by row blocks of ``L^-1`` or by the solve), the outputs spread
+        over threads (:func:`~estimator_service.gp.parallel.over_outputs`)."""
+        p_out = self.output_dim
+        mean, var = np.empty((xs.shape[0], p_out)), np.empty((xs.shape[0], p_out))
+        jac = np.empty((xs.shape[0], p_out, xs.shape[1])) if return_jac else None
+        sf2 = np.exp(2.0 * self.theta[:, -2])
+        inv = self.inverse_factors() if self.inverse else [None] * p_out
+        kern = self._kernel
+
+        def one(p: int) -> None:
+            k = kern.block_one(xs, p)
+            mean[:, p] = k @ self.alpha[p]
+            if jac is not None:
+                jac[:, p] = (k @ kern.weighted_centres[p] - xs * mean[:, p, None]) / kern.ell[p] ** 2
+            if inv[p] is not None:
+                var[:, p] = sf2[p] - inverse_sq_norms(k, inv[p])
+            else:
+                v = tri_solve(self.chol_t[p].T, k.T, overwrite_b=True)
+                var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)
+
+        over_outputs(one, p_out)
+        return mean, np.maximum(var, 0.0, out=var), jac
 
     def noise_std_units(self, xs: FloatArray) -> FloatArray:
         """Standardised noise variance at queries ``xs (M, d)`` -> ``(M, P)``."""

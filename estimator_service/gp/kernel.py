@@ -90,6 +90,30 @@ class CrossKernel:
         b_aug_t = np.ascontiguousarray(np.concatenate([b, ones, top], axis=-1).transpose(0, 2, 1))
         return cls(ell, np.log(sf2), b_aug_t, weights[:, :, None].copy(), weights[:, :, None] * c)
 
+    def block(self, xs: FloatArray) -> FloatArray:
+        """Kernel block ``ks (P, M, n)`` at standardised queries ``xs (M, d)``."""
+        a = xs[None] / self.ell[:, None, :]
+        ones = np.ones((*a.shape[:2], 1))
+        a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=-1)[..., None], ones], axis=-1)
+        ks = a_aug @ self.b_aug_t
+        np.minimum(ks, self.log_sf2[:, None, None], out=ks)  # distance >= 0
+        return np.exp(ks, out=ks)
+
+    def block_one(self, xs: FloatArray, p: int) -> FloatArray:
+        """Output ``p``'s kernel block ``(M, n)`` at standardised queries ``xs (M, d)``."""
+        a = xs / self.ell[p]
+        a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=1)[:, None], np.ones((a.shape[0], 1))], axis=1)
+        k = a_aug @ self.b_aug_t[p]
+        np.minimum(k, self.log_sf2[p], out=k)
+        return np.exp(k, out=k)
+
+    def jacobian(self, ks: FloatArray, xs: FloatArray, mean: FloatArray) -> FloatArray:
+        """``d mean / d x* (M, P, d)`` (eq. 20-22) from the block ``ks (P, M, n)``, the
+        queries ``xs (M, d)`` and the mean ``(M, P)``: ``-W (x* mean - ks @ (weights *
+        centres))``."""
+        jac = (ks @ self.weighted_centres - xs[None] * mean.T[:, :, None]) / (self.ell**2)[:, None, :]
+        return jac.transpose(1, 0, 2)
+
     def __call__(self, xs: FloatArray, return_jac: bool) -> tuple[FloatArray, FloatArray, FloatArray | None]:
         """Kernel block, mean and Jacobian at standardised queries ``xs (M, d)``.
 
@@ -99,17 +123,8 @@ class CrossKernel:
         mean: (M, P)
             ``ks @ weights`` (paper eq. 2).
         jac: (M, P, d) or None
-            ``d mean / d x*`` (eq. 20-22): ``-W (x* mean - ks @ (weights * centres))``.
+            See :meth:`jacobian`.
         """
-        a = xs[None] / self.ell[:, None, :]
-        ones = np.ones((*a.shape[:2], 1))
-        a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=-1)[..., None], ones], axis=-1)
-        ks = a_aug @ self.b_aug_t
-        np.minimum(ks, self.log_sf2[:, None, None], out=ks)  # distance >= 0
-        np.exp(ks, out=ks)
-        mean = (ks @ self.weights)[:, :, 0]  # (P, M)
-        jac = None
-        if return_jac:
-            jac = (ks @ self.weighted_centres - xs[None] * mean[:, :, None]) / (self.ell**2)[:, None, :]
-            jac = jac.transpose(1, 0, 2)
-        return ks, mean.T, jac
+        ks = self.block(xs)
+        mean = (ks @ self.weights)[:, :, 0].T  # (M, P)
+        return ks, mean, self.jacobian(ks, xs, mean) if return_jac else None

@@ -33,11 +33,14 @@ from estimator_service.gp.linalg import (
     single_threaded_blas,
     tri_solve,
 )
+from estimator_service.gp.parallel import over_outputs
 from estimator_service.reprs import short_repr
 
 __all__ = ["SparseGP", "fit_sparse", "sparse_nll"]
 
 FloatArray = NDArray[np.float64]
+#: queries above which a batch goes output by output over threads
+BY_OUTPUT_MIN_QUERIES = 64
 
 
 def _lower_solve(l: FloatArray, b: FloatArray) -> FloatArray:
@@ -120,12 +123,12 @@ class SparseGP:
     chol_mm_t, chol_b_t: (P, m, m)
         Transposed lower Cholesky factors of ``K_mm`` and of ``B = L_m^-1 A L_m^-T``.
     inverse: bool
-        Predictive variances from the explicit inverse factors of both (computed once,
-        on the first variance request, when every output's factors are well conditioned;
-        see :func:`~estimator_service.gp.linalg.inverse_factor`): two stacked matrix
-        products for all outputs instead of two triangular solves per output (one query with
-        its Jacobian, 12 outputs, 50 pseudo-inputs: 0.363 -> 0.144 ms); ``tests/test_gp.py``
-        bounds the difference on a near-noiseless GP.
+        Predictive means and variances from one stacked product with :meth:`projection`
+        (built once from the explicit inverse factors of both, on the first variance
+        request, when every output's factors are well conditioned; see
+        :func:`~estimator_service.gp.linalg.inverse_factor`) instead of two triangular
+        solves per output; ``tests/test_gp.py`` bounds the difference on a near-noiseless
+        GP.
     """
 
     __repr__ = short_repr
@@ -142,12 +145,14 @@ class SparseGP:
 
     _kernel: CrossKernel = field(init=False, repr=False)
     _inv: list = field(init=False, repr=False)
+    _proj: list = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         for arr in (self.theta, self.pseudo_inputs, self.beta, self.chol_mm_t, self.chol_b_t):
             arr.flags.writeable = False
         object.__setattr__(self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta))
         object.__setattr__(self, "_inv", [])  # filled on the first variance request
+        object.__setattr__(self, "_proj", [])
 
     def inverse_factors(self) -> tuple[FloatArray, FloatArray] | None:
         """``L_m^-1`` and ``L_B^-1``, each ``(P, m, m)``, or None where the solves are kept
@@ -199,29 +204,75 @@ class SparseGP:
     def output_dim(self) -> int:
         return self.theta.shape[0]
 
+    def projection(self) -> FloatArray | None:
+        """``W (P, m, m + 1)``: ``ks @ W`` gives, per output, ``G k`` (first ``m`` columns,
+        latent variance ``sf^2 - |G k|^2``) and the mean ``beta^T k`` (last column); None
+        where the solves are kept (:meth:`inverse_factors`).
+
+        FITC's variance ``sf^2 - |L_m^-1 k|^2 + |L_B^-1 L_m^-1 k|^2`` is
+        ``sf^2 - k^T L_m^-T (I - B^-1) L_m^-1 k``; with ``I - B^-1 = U diag(mu) U^T``
+        (``mu`` in [0, 1), from ``B^-1 = L_B^-T L_B^-1``, whose entries are accurate to
+        rounding because ``|L_B^-1| <= 1``), ``G = diag(sqrt(mu)) U^T L_m^-1``: one ``m x m``
+        product per query instead of two, and the mean in the same product.
+        """
+        if not self._proj:  # once; a race only computes the same matrix twice
+            inv = self.inverse_factors()
+            proj = None
+            if inv is not None:
+                lmi, lbi = inv
+                b_inv = lbi.transpose(0, 2, 1) @ lbi
+                mu, u = np.linalg.eigh(np.eye(b_inv.shape[-1]) - b_inv)
+                g = np.sqrt(np.clip(mu, 0.0, 1.0))[:, :, None] * (u.transpose(0, 2, 1) @ lmi)
+                proj = np.ascontiguousarray(
+                    np.concatenate([g.transpose(0, 2, 1), self.beta[:, :, None]], axis=2)
+                )
+                proj.flags.writeable = False
+            self._proj[:] = [proj]
+        return self._proj[0]
+
     def latent(
         self, xs: FloatArray, return_var: bool, return_jac: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Standardised latent mean ``(M, P)``, variance ``(M, P)``, Jacobian ``(M, P, d)``."""
-        inv = self.inverse_factors() if return_var and self.inverse else None
-        if inv is not None or not return_var:
-            return self._latent(xs, return_var, return_jac, inv)  # a few stacked products
+        proj = self.projection() if return_var and self.inverse else None
+        if proj is not None and not return_jac and xs.shape[0] > BY_OUTPUT_MIN_QUERIES:
+            return (*self._batch_latent(xs, proj), None)
+        if proj is not None:  # every output at once: (P, M, m) @ (P, m, m + 1)
+            ks = self._kernel.block(xs)
+            out = ks @ proj
+            mean = out[:, :, -1].T
+            g = out[:, :, :-1]
+            var = np.exp(2.0 * self.theta[:, -2]) - np.einsum("pqm,pqm->qp", g, g)
+            jac = self._kernel.jacobian(ks, xs, mean) if return_jac else None
+            return mean, np.maximum(var, 0.0, out=var), jac
+        if not return_var:
+            return self._latent(xs, False, return_jac)
         with single_threaded_blas():  # m x m solves: a second BLAS thread only contends
-            return self._latent(xs, return_var, return_jac, None)
+            return self._latent(xs, True, return_jac)
+
+    def _batch_latent(self, xs: FloatArray, proj: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Mean and variance ``(M, P)`` of a batch, output by output over threads
+        (:func:`~estimator_service.gp.parallel.over_outputs`)."""
+        p_out = self.output_dim
+        mean, var = np.empty((xs.shape[0], p_out)), np.empty((xs.shape[0], p_out))
+        sf2 = np.exp(2.0 * self.theta[:, -2])
+
+        def one(p: int) -> None:
+            out = self._kernel.block_one(xs, p) @ proj[p]
+            mean[:, p] = out[:, -1]
+            g = out[:, :-1]
+            var[:, p] = sf2[p] - np.einsum("qm,qm->q", g, g)
+
+        over_outputs(one, p_out)
+        return mean, np.maximum(var, 0.0, out=var)
 
     def _latent(
-        self, xs: FloatArray, return_var: bool, return_jac: bool,
-        inv: tuple[FloatArray, FloatArray] | None,
-    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:  # fmt: skip
+        self, xs: FloatArray, return_var: bool, return_jac: bool
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         ks, mean, jac = self._kernel(xs, return_jac)
         var = None
         if return_var:
             sf2 = np.exp(2.0 * self.theta[:, -2])
-            if inv is not None:  # every output at once: (P, m, m) @ (P, m, M)
-                w = inv[0] @ ks.transpose(0, 2, 1)
-                wb = inv[1] @ w
-                var = sf2 - np.einsum("pmq,pmq->qp", w, w) + np.einsum("pmq,pmq->qp", wb, wb)
-                return mean, np.maximum(var, 0.0, out=var), jac
             var = np.empty_like(mean)
             for p in range(self.output_dim):  # one BLAS-3 solve pair per output, all queries
                 w = tri_solve(self.chol_mm_t[p].T, ks[p].T, overwrite_b=True)
