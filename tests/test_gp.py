@@ -362,3 +362,46 @@ def test_sparse_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp
     assert fast.projection() is not None  # well enough conditioned to be used
     q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
     _same_up_to_rounding(fast, slow, q, mean_rtol=1e-12)  # the same sum, in another order
+
+
+def test_batch_prediction_does_not_depend_on_the_thread_count() -> None:
+    """Outputs spread over threads give bit-identical results to one thread."""
+    from threadpoolctl import threadpool_limits
+
+    from estimator_service.gp.linalg import blas_threads
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(300, 4))
+    y = np.stack([np.sin(x[:, 0]), np.cos(x[:, 1]), x[:, 2] * x[:, 3]], axis=1)
+    xs, ys = identity_scalers(4, 3)
+    theta = np.tile([0.2, 0.3, 0.1, 0.4, 0.0, math.log(0.05)], (3, 1))
+    gps = [
+        ExactGP.from_theta(x, y, theta, xs, ys),
+        SparseGP.from_params(x, y, theta, np.stack([x[:40], x[40:80], x[80:120]]), xs, ys),
+    ]
+    q = rng.normal(size=(500, 4))
+    for gp in gps:
+        many = gp.predict(q, return_jac=isinstance(gp, ExactGP))
+        with threadpool_limits(1):
+            assert blas_threads() == 1
+            one = gp.predict(q, return_jac=isinstance(gp, ExactGP))
+        for field in ("mean", "var", "jac"):
+            np.testing.assert_array_equal(getattr(many, field), getattr(one, field))
+
+
+def test_over_outputs_runs_every_output_once_and_raises_its_errors() -> None:
+    from estimator_service.gp.linalg import blas_threads
+    from estimator_service.gp.parallel import over_outputs
+
+    before = blas_threads()
+    seen: list[int] = []
+    over_outputs(seen.append, 7)
+    assert sorted(seen) == list(range(7))
+
+    def fail(p: int) -> None:
+        if p == 3:
+            raise ValueError("output 3")
+
+    with pytest.raises(ValueError, match="output 3"):
+        over_outputs(fail, 5)
+    assert blas_threads() == before  # the one-thread limit is lifted again
