@@ -10,6 +10,7 @@ core. Results do not depend on the split: each output is computed by the same ca
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +21,7 @@ __all__ = ["output_workers", "over_outputs"]
 
 _LOCK = threading.Lock()
 _POOL: list[ThreadPoolExecutor] = []
+os.register_at_fork(after_in_child=_POOL.clear)  # a forked child has none of the pool's threads
 
 
 def output_workers() -> int:
