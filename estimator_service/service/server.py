@@ -178,9 +178,13 @@ class EstimatorService:
         while not self._stop.wait(min(5.0, ttl / 4) if ttl > 0 else 5.0):
             self._expire(time.monotonic())
 
-    def _close_session(self, blimp: str) -> bytes:
+    def _close_session(self, blimp: str) -> bytes | None:
+        """Close a session; its final reply, or None when another close or the expiry
+        removed it first."""
         with self._lock:
-            s = self._sessions.pop(blimp)
+            s = self._sessions.pop(blimp, None)
+        if s is None:
+            return None
         s.stop()
         return encode({"v": PROTOCOL_VERSION, "blimp": blimp, "closed": True, "steps": s.steps})
 
@@ -241,7 +245,11 @@ class EstimatorService:
         if isinstance(session, str):
             self._refuse(blimp, kind, session, query)
         elif kind == "close":
-            query.reply(query.key_expr, self._close_session(blimp), encoding=MSGPACK)
+            closed = self._close_session(blimp)
+            if closed is None:  # closed, expired or moved since it was looked up
+                self._refuse(blimp, kind, f"{NO_SESSION} {blimp!r}: already closed", query)
+            else:
+                query.reply(query.key_expr, closed, encoding=MSGPACK)
         else:
             session.submit(kind, query.payload.to_bytes() if query.payload is not None else b"", query)
 
