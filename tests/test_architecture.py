@@ -128,8 +128,10 @@ assert main(["track", {str(log)!r}, "--system", {str(system)!r}, "--models", {st
 from estimator_service.service.server import EstimatorService, ServiceConfig
 from estimator_service.service.client import free_port
 svc = EstimatorService(ServiceConfig({str(tmp_path / "m")!r}, listen=(f"tcp/127.0.0.1:{{free_port()}}",)))
-assert svc._close_session("gone") is None  # a close that lost a race answers, not KeyError
-svc.close()
+try:
+    assert svc._close_session("gone") is None  # a close that lost a race answers, not KeyError
+finally:
+    svc.close()
 heavy = sorted(m for m in sys.modules if m.split(".")[0] in ("gymnasium", "torch", "gpbf_env", "agents"))
 assert not heavy, heavy
 print("ok")
