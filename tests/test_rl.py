@@ -357,3 +357,17 @@ def test_tensorboard_flag_logs_or_names_the_missing_package(models: str, tmp_pat
     else:
         train_agent(spec, 128, tmp_path / "agent", tensorboard=tmp_path / "tb", progress_bar=False)
         assert list((tmp_path / "tb").rglob("events.out.tfevents.*"))
+
+
+def test_learning_curves_align_seeds_evaluated_at_different_intervals(tmp_path: Path) -> None:
+    from agents.experiments.rl_report import learning_curves
+
+    for seed, every in ((0, 50_000), (1, 100_000)):
+        folder = tmp_path / "agents" / f"hover-state-{seed}"
+        folder.mkdir(parents=True)
+        steps = np.arange(every, 1_000_001, every)
+        results = np.repeat(steps[:, None] / 1e3, 4, axis=1)
+        np.savez(folder / "evaluations.npz", timesteps=steps, results=results)
+    steps, returns = learning_curves(tmp_path, "hover", "state")
+    np.testing.assert_array_equal(steps, np.arange(100_000, 1_000_001, 100_000))
+    np.testing.assert_array_equal(returns, np.stack([steps / 1e3, steps / 1e3]))  # each at its own step

@@ -17,14 +17,18 @@ COLOURS = {"state": "tab:green", "belief": "tab:blue", "belief-param": "tab:oran
 
 
 def learning_curves(out: Path, task: str, variant: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds,
-    cut to the evaluations every seed has; None without logs."""
+    """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds, at
+    the steps every seed was evaluated at (seeds may have been evaluated at different
+    intervals); None without logs."""
     logs = sorted((out / "agents").glob(f"{task}-{variant}-[0-9]*/evaluations.npz"))  # not belief-param
     data = [np.load(f) for f in logs]
     if not data:
         return None
-    e = min(len(d["timesteps"]) for d in data)
-    return data[0]["timesteps"][:e], np.stack([d["results"][:e].mean(axis=1) for d in data])
+    steps = data[0]["timesteps"]
+    for d in data[1:]:
+        steps = np.intersect1d(steps, d["timesteps"])
+    rows = [d["results"][np.isin(d["timesteps"], steps)].mean(axis=1) for d in data]
+    return steps, np.stack(rows)
 
 
 def _figures(out: Path, data: dict[str, Any]) -> None:
