@@ -15,7 +15,7 @@ from gpbf_env.core import WorldConfig, camera_lag, check_action, initial_state, 
 from gpbf_env.dynamics import Coeffs, make_coeffs, rk4_step
 from gpbf_env.mocap import AUX_DRAWS, PoseTrack, measure
 from gpbf_env.params import BlimpParams
-from gpbf_env.tasks import hover_start, sample_goals, task_reward
+from gpbf_env.tasks import advance_course, hover_start, sample_goals, task_reward
 
 __all__ = ["BlimpEnv"]
 
@@ -183,10 +183,11 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         reward = float(parts["alive"][0] + parts["distance"][0] + parts["heading"][0] + parts["control"][0])
         success = bool(parts["reached"][0])
         if cfg.task == "waypoint":
-            if success and not self._finished:
-                reward += cfg.weights.reach_bonus
-                self._finished = self._goal_index + 1 >= len(self._goals)
-                self._goal_index = min(self._goal_index + 1, len(self._goals) - 1)
+            bonus, finished, index = advance_course(
+                parts["reached"], np.array([self._finished]), np.array([self._goal_index]), len(self._goals)
+            )
+            reward += cfg.weights.reach_bonus * float(bonus[0])
+            self._finished, self._goal_index = bool(finished[0]), int(index[0])
             success = self._finished
         if crashed:
             reward -= cfg.weights.crash

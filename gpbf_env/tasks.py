@@ -8,7 +8,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["HOVER_START_RADIUS", "TASKS", "RewardWeights", "hover_start", "sample_goals", "task_reward"]
+__all__ = [
+    "HOVER_START_RADIUS",
+    "TASKS",
+    "RewardWeights",
+    "advance_course",
+    "hover_start",
+    "sample_goals",
+    "task_reward",
+]
 
 TASKS = ("hover", "waypoint")
 FloatArray = NDArray[np.float64]
@@ -152,3 +160,31 @@ def task_reward(
         "distance_m": dist,
         "reached": dist < weights.reach_radius,
     }
+
+
+def advance_course(
+    reached: NDArray[np.bool_], finished: NDArray[np.bool_], goal_index: NDArray[np.int64], n_goals: int
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.int64]]:
+    """The waypoint course after a step, for ``N`` blimps.
+
+    Parameters
+    ----------
+    reached: (N,)
+        Within the reach radius of the current waypoint this step.
+    finished: (N,)
+        Every waypoint already reached (the last one is being held).
+    goal_index: (N,)
+        Index of the current waypoint.
+    n_goals
+        Waypoints in the course.
+
+    Returns
+    -------
+    bonus: (N,)
+        A waypoint was reached for the first time (pays ``reach_bonus``).
+    finished, goal_index: (N,)
+        The course after the step (the index stays at the last waypoint).
+    """
+    bonus = reached & ~finished
+    finished = finished | (bonus & (goal_index + 1 >= n_goals))
+    return bonus, finished, np.minimum(goal_index + bonus, n_goals - 1)

@@ -27,7 +27,7 @@ from gpbf_env.core import WorldConfig, camera_lag, check_action, initial_state, 
 from gpbf_env.dynamics import make_coeffs, rk4_step
 from gpbf_env.mocap import AUX_DRAWS, PoseTrack, measure
 from gpbf_env.params import BlimpParams
-from gpbf_env.tasks import hover_start, sample_goals, task_reward
+from gpbf_env.tasks import advance_course, hover_start, sample_goals, task_reward
 
 __all__ = ["BlimpVectorEnv"]
 
@@ -192,10 +192,10 @@ class BlimpVectorEnv(VectorEnv):
         reward = parts["alive"] + parts["distance"] + parts["heading"] + parts["control"]
         parts["success"] = parts["reached"]
         if cfg.task == "waypoint":
-            reached = parts["reached"] & ~self._finished
-            reward = reward + cfg.weights.reach_bonus * reached
-            self._finished |= reached & (self._goal_index + 1 >= self._goals.shape[1])
-            self._goal_index = np.minimum(self._goal_index + reached, self._goals.shape[1] - 1)
+            bonus, self._finished, self._goal_index = advance_course(
+                parts["reached"], self._finished, self._goal_index, self._goals.shape[1]
+            )
+            reward = reward + cfg.weights.reach_bonus * bonus
             parts["success"] = self._finished.copy()
         reward = reward - cfg.weights.crash * crashed
         terminated = crashed.copy()
