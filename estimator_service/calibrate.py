@@ -5,7 +5,9 @@ it).
 :func:`calibrate_observation` scales each observation output by its mean squared
 standardised residual on the block's frames, :func:`calibrate_process` each state output
 of the prediction model by its one-step residual on the block's transitions;
-:func:`calibrate_noise` then matches each output's process noise to the EKF's errors there.
+:func:`calibrate_noise` then matches each output's process noise to the EKF's errors there
+and widens the noise until the 3-sigma bounds hold as often as a Gaussian belief's
+(:mod:`estimator_service.matching`).
 All write ``calibration.json`` beside the models
 (:mod:`estimator_service.models.calibration`). Angle outputs and the state dimension come
 from the flight's :class:`~estimator_service.system.System`.
@@ -20,18 +22,30 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.flight import Flight
+from estimator_service.matching import (
+    MATCH_ROUNDS,
+    MATCH_STEP,
+    Block,
+    coverage_curve,
+    covering_factor,
+    match_scales,
+)
+from estimator_service.models.calibration import read_observation_scales, read_process_scales
 
 __all__ = [
-    "MATCH_ROUNDS",
+    "NOISE_DETAILS",
     "calibrate_all",
     "calibrate_noise",
     "calibrate_observation",
     "calibrate_process",
     "calibration_rows",
+    "noise_from_blocks",
     "without_frames",
+    "write_calibration",
 ]
 
 FloatArray = NDArray[np.float64]
+NOISE_DETAILS = "noise"  # calibration.json details: what each kind's noise calibration measured
 
 
 def calibration_rows(flight: Flight, seconds: float) -> slice:
@@ -107,60 +121,67 @@ def calibrate_process(
     return chosen
 
 
-MATCH_ROUNDS = 4  # covariance-matching rounds of calibrate_noise
-MATCH_STEP = 4.0  # the most one round changes an output's scale (either way)
-
-
 def calibrate_noise(
     flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice,
     rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
 ) -> dict[str, FloatArray]:  # fmt: skip
     """Per kind, process-noise scales per state output matched to the EKF's errors over
     ``rows`` of ``flight`` (held out of every model's training: the truth is known there,
-    the models never saw it); written to ``folder/calibration.json``.
+    the models never saw it) and the 3-sigma coverage factor on the process and observation
+    noise (:mod:`estimator_service.matching`), starting from :func:`calibrate_process`'s
+    one-step scales; written to ``folder/calibration.json``. Cross-fitting
+    (:mod:`estimator_service.crossfit`) does the same pooled over several blocks.
 
-    Starting from :func:`calibrate_process`'s one-step scales, each round tracks the rows
-    with the EKF and multiplies each output's scale by its mean normalised squared error
-    ``e_i^2 / P_ii`` (1 when the belief's spread matches the errors; the factor clipped to
-    ``[1 / max_step, max_step]``). One-step residuals alone miss errors that persist over
-    many steps (gusts with a 3 s correlation time, actuator lag, an unobserved drift such
-    as the yaw's): on a held-out flight the yaw's ``e^2 / P`` was 14 with one-step scales.
     Stored as ``noise_scale`` (the geometric mean) times ``process_noise_scale``; returns
     their product per kind ``(n,)``.
     """
-    from estimator_service.factory import apply_calibration, load_models, make_filter
-    from estimator_service.models.calibration import (
-        NoiseScaledPrediction,
-        read_process_scales,
-        write_noise_scales,
-    )
-    from estimator_service.tracking import track_flight
+    from estimator_service.factory import apply_calibration, load_models
 
-    chosen, history = {}, {}
-    start = read_process_scales(folder)
+    chosen, obs, details = {}, {}, {}
     for kind in kinds:
         raw = load_models(folder, kind, calibrated=False, check=False)
-        pred, obs = apply_calibration(folder, kind, *raw, process=False)  # observation scales only
-        scale = start.get(kind, np.ones(pred.state_dim)).copy()
-        history[kind] = []
-        for _ in range(rounds):
-            filt = make_filter(  # the plain EKF: the adaptive one would hide what is matched here
-                "ekf", NoiseScaledPrediction(pred, scale), obs, system=flight.system, adapt_rate=0.0
-            )
-            r = track_flight(filt, flight, rows=rows)
-            z2 = np.mean(r.error**2 / np.diagonal(r.cov, axis1=1, axis2=2), axis=0)
-            history[kind].append({"nees": r.scores()["nees"], "e2_over_var": z2.tolist()})
-            scale = scale * np.clip(np.nan_to_num(z2, nan=max_step, posinf=max_step), 1 / max_step, max_step)
-        chosen[kind] = scale
-    mean = {k: float(np.exp(np.mean(np.log(v)))) for k, v in chosen.items()}
-    write_noise_scales(folder, mean, process={k: v / mean[k] for k, v in chosen.items()},
-                       matching=history, calibration_rows=[rows.start, rows.stop])  # fmt: skip
+        pred, cam = apply_calibration(folder, kind, *raw, process=False)  # observation scales only
+        start = read_process_scales(folder).get(kind, np.ones(pred.state_dim))
+        scales = read_observation_scales(folder).get(kind)
+        chosen[kind], obs[kind], details[kind] = noise_from_blocks(
+            [Block(flight, rows, pred, cam)], start, scales, rounds, max_step
+        )
+    write_calibration(folder, chosen, obs, details, calibration_rows=[rows.start, rows.stop])
     return chosen
+
+
+def noise_from_blocks(
+    blocks: Sequence[Block], start: FloatArray, obs_scale: FloatArray | None,
+    rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
+) -> tuple[FloatArray, FloatArray | None, dict]:  # fmt: skip
+    """Matched process scales ``(n,)`` times the covering factor, the observation scales
+    ``(m,)`` (those the blocks' models carry, or None) times it, and what was measured."""
+    scale, history = match_scales(blocks, start, rounds=rounds, max_step=max_step)
+    curve = coverage_curve(blocks, scale)
+    factor = covering_factor(curve, len(scale))
+    details = {"matching": history, "coverage": curve, "coverage_factor": factor}
+    return scale * factor, None if obs_scale is None else obs_scale * factor, details
+
+
+def write_calibration(
+    folder: Path, process: dict[str, FloatArray], observation: dict[str, FloatArray | None],
+    details: dict[str, dict], **extra: object,
+) -> None:  # fmt: skip
+    """Write per-kind process scales (as a geometric-mean ``noise_scale`` times per-output
+    scales), observation scales and what each kind's calibration measured."""
+    from estimator_service.models.calibration import write_noise_scales
+
+    mean = {k: float(np.exp(np.mean(np.log(v)))) for k, v in process.items()}
+    write_noise_scales(
+        folder, mean, observation={k: v for k, v in observation.items() if v is not None},
+        process={k: v / mean[k] for k, v in process.items()}, **{NOISE_DETAILS: details}, **extra,
+    )  # fmt: skip
 
 
 def calibrate_all(flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice) -> None:
     """Observation scales, one-step process scales, then their per-output match to the EKF's
-    errors, all on ``rows`` of ``flight`` (which the models in ``folder`` must not have seen)."""
+    errors and the 3-sigma coverage factor, all on ``rows`` of ``flight`` (which the models
+    in ``folder`` must not have seen)."""
     calibrate_observation(flight, folder, kinds, rows=rows)
     calibrate_process(flight, folder, kinds, rows=rows)
     calibrate_noise(flight, folder, kinds, rows=rows)

@@ -11,13 +11,16 @@ import pytest
 
 from agents.sim import collect_flight
 from estimator_service.calibrate import (
+    NOISE_DETAILS,
     calibrate_noise,
     calibrate_observation,
     calibrate_process,
     calibration_rows,
     without_frames,
 )
+from estimator_service.crossfit import Fold, calibration_blocks, calibration_folds
 from estimator_service.factory import load_models
+from estimator_service.matching import COVERAGE_FACTORS, covering_factor, leverage
 from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.models.calibration import (
     CALIBRATION_FILE,
@@ -66,6 +69,7 @@ def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path
     s = TrainSettings(n_points=60, restarts=1, max_iter=5, calibration_seconds=0)
     train_models([flight.select(np.arange(rows.stop, len(flight)))], tmp_path, kinds=["param"], settings=s)
     assert read_noise_scales(tmp_path) == {}  # calibration_seconds = 0 skips it
+    calibrate_observation_scales = calibrate_observation(flight, tmp_path, ["param"], rows=rows)["param"]
     one_step = calibrate_process(flight, tmp_path, ["param"], rows=rows)["param"]
     pred, _ = load_models(tmp_path, "param", calibrated=False)
     x, u, x1 = flight.select(np.arange(rows.stop)).transitions()
@@ -73,29 +77,33 @@ def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path
     r = flight.system.wrapping().state_diff(flight.system.state_error(x1, x) - out.mean)
     np.testing.assert_allclose(one_step, np.clip(np.mean(r * r / out.var, axis=0), 0.1, 1e4), rtol=1e-9)
     chosen = calibrate_noise(flight, tmp_path, ["param"], rows=rows)["param"]
-    rounds = json.loads((tmp_path / CALIBRATION_FILE).read_text())["details"]["matching"]["param"]
-    first, last = (np.abs(np.log(rounds[k]["e2_over_var"])) for k in (0, -1))
+    noise = json.loads((tmp_path / CALIBRATION_FILE).read_text())["details"][NOISE_DETAILS]["param"]
+    first, last = (np.abs(np.log(noise["matching"][k]["e2_over_var"])) for k in (0, -1))
     assert np.median(last) < np.median(first)  # each output's spread nearer its errors
-    scaled, _ = load_models(tmp_path, "param")
-    assert isinstance(scaled, NoiseScaledPrediction)
+    assert np.sum(last < np.log(1.5)) >= 11  # converged, the yaw (which the cameras pin) included
+    factor = noise["coverage_factor"]  # the smallest that covers the rows as a Gaussian would
+    assert factor == covering_factor(noise["coverage"], 12) and noise["coverage"] == sorted(noise["coverage"])
+    scaled, cam = load_models(tmp_path, "param")
+    assert isinstance(scaled, NoiseScaledPrediction) and isinstance(cam, NoiseScaledObservation)
     np.testing.assert_allclose(scaled.scale, chosen, rtol=1e-12)
+    np.testing.assert_allclose(cam.scale, factor * np.maximum(calibrate_observation_scales, 1.0), rtol=1e-12)
 
 
 def test_cross_fitted_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight(tmp_path: Path) -> None:
-    """GP models trained on an 8-minute flight and calibrated by cross-fitting (two 2-minute
-    blocks, each scored with models that never saw it), tracked on a new flight by the
-    factory's filters: the truth lies within 3 sigma on every dimension on at least 90% of
-    the steps (Gaussian expectation 0.968 for 12 dimensions) and the average NEES is near
-    12. (The in-sample calibration before cross-fitting reached 0.901 and 0.920 here too,
-    on this long flight; its failure shows on short ones: 4-minute flight, 1 minute held
-    out, 0.695 and 0.720, NEES 263. The leakage itself is tested below.) Measured in the
-    clean world, where this was established; the lab world's figure is in issue 19's note."""
+    """GP models trained on an 8-minute lab flight and calibrated by cross-fitting (four
+    2-minute blocks, each scored with models that never saw it), tracked on a new 4-minute
+    flight by the factory's filters: the truth lies within 3 sigma on every dimension on at
+    least 92% of the steps (Gaussian expectation 0.968 for 12 dimensions; measured 0.935 and
+    0.936). Fails with the calibration before issue 19's rework (two blocks, matching without
+    the coverage factor) and with in-sample calibration on the flight's start (today's
+    matching and factor: 0.856 and 0.870, NEES/12 1.17). The beliefs err wide (NEES/12
+    0.55): the positions' errors on a new flight exceed the held-out blocks' while the
+    velocities' fall short of them, and one factor widens all."""
     from estimator_service.factory import build_filter
     from estimator_service.tracking import track_flight
 
-    clean = {"reality": "clean"}
-    train = collect_flight(480, seed=21, env_kwargs=clean)
-    test = collect_flight(120, seed=22, env_kwargs=clean)
+    train = collect_flight(480, seed=21)
+    test = collect_flight(240, seed=22)
     s = TrainSettings(n_points=200, restarts=1, max_iter=40, hyper_points=None, calibration_seconds=120)
     train_models([train], tmp_path, kinds=["gp"], settings=s)
     for kind in ("ekf", "ukf"):
@@ -103,8 +111,8 @@ def test_cross_fitted_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight
         runs = [
             track_flight(filt, test, rows=slice(a, a + 120)).scores() for a in range(0, len(test) - 119, 120)
         ]
-        assert np.mean([r["within3"] for r in runs]) >= 0.9, kind
-        assert 0.5 * 12 <= np.mean([r["nees"] for r in runs]) <= 1.5 * 12, kind
+        assert np.mean([r["within3"] for r in runs]) >= 0.92, kind
+        assert 0.4 * 12 <= np.mean([r["nees"] for r in runs]) <= 1.5 * 12, kind
 
 
 def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: Path, monkeypatch) -> None:
@@ -129,10 +137,46 @@ def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: P
     flight = collect_flight(120, seed=5)
     s = TrainSettings(n_points=40, restarts=1, max_iter=3, calibration_seconds=20)
     train_models([flight], tmp_path, kinds=["param"], settings=s)
-    assert fits[0][1] == set(flight.t.tolist()) and len(fits) == 3 and len(scored) == 2
+    assert fits[0][1] == set(flight.t.tolist()) and len(fits) == 5 and len(scored) == 4
     for (fold, seen), (folder, block) in zip(fits[1:], scored, strict=True):
         assert fold == folder and len(block) == 80 and not seen & block
     assert "process_noise_scale" in json.loads((tmp_path / CALIBRATION_FILE).read_text())
+
+
+def test_calibration_folds_spread_over_one_flight_or_hold_out_whole_flights() -> None:
+    """One flight: blocks from its start to its end, never overlapping; several: each of the
+    first ``folds`` flights held out whole in turn, the others kept; a block in the middle
+    of a flight leaves its two sides as separate flights (no transition across the cut)."""
+    a, b = collect_flight(60, seed=1), collect_flight(30, seed=2)
+    blocks = calibration_blocks(a, 10.0, 4)
+    assert len(a) == 241 and [(x.start, x.stop) for x in blocks] == [
+        (0, 40),
+        (67, 107),
+        (134, 174),
+        (201, 241),
+    ]
+    assert calibration_blocks(a, 1e4, 4)[0] == slice(0, 60)  # at most a quarter each
+    assert [x.rows for x in calibration_folds([a], 10.0, 2)] == [slice(0, 40), slice(201, 241)]
+    assert calibration_folds([a], 0.0, 4) == []
+    folds = calibration_folds([a, b], 20.0, 4)
+    assert folds == [Fold(0, slice(0, 80)), Fold(1, slice(0, 80))]
+    assert [len(f) for f in folds[0].rest([a, b])] == [len(a) - 80, len(b)]
+    middle = Fold(0, slice(100, 140)).rest([a, b])
+    assert [len(f) for f in middle] == [100, len(a) - 140, len(b)]
+    np.testing.assert_array_equal(middle[1].state, a.state[140:])
+    with pytest.raises(ValueError, match="calibration_folds"):
+        calibration_blocks(a, 10.0, 0)
+
+
+def test_leverage_and_covering_factor() -> None:
+    """The leverage is the measured elasticity of ``e^2 / P`` to its scale, clipped; the
+    covering factor is the first whose coverage reaches the Gaussian expectation."""
+    before = (np.array([1.0, 1.0, 1.0, 1.0]), np.array([4.0, 4.0, 4.0, 4.0]))
+    after = (np.array([4.0, 4.0, 1.0, 4.0]), np.array([1.0, 2.0, 3.0, 8.0]))
+    np.testing.assert_allclose(leverage(before, after), [1.0, 0.5, 1.0, 0.25])
+    target = 0.9973**12
+    assert covering_factor([0.5, 0.9, target, 1.0, 1.0, 1.0, 1.0], 12) == COVERAGE_FACTORS[2]
+    assert covering_factor([0.5] * len(COVERAGE_FACTORS), 12) == COVERAGE_FACTORS[-1]
 
 
 def test_scaled_observation_scales_each_output_variance() -> None:
@@ -173,3 +217,59 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
     np.testing.assert_allclose(obs.scale, np.maximum(chosen, 1.0))
     assert read_observation_scales(tmp_path)["param"].shape == (10,)
     assert read_noise_scales(tmp_path) == {}  # process scales untouched
+
+
+def test_condition_only_folds_keep_the_final_hyperparameters(tmp_path: Path, monkeypatch) -> None:
+    """With ``calibration_refit=False`` every kind's fold models carry the final models'
+    hyperparameters (conditioned on the fold's data, not optimised again)."""
+    import estimator_service.training as training
+
+    thetas: list[tuple[str, np.ndarray, np.ndarray]] = []
+    real_fit = training._fit_models
+
+    def hyper(path: Path) -> dict[str, np.ndarray]:
+        with np.load(path) as f:
+            return {k: f[k] for k in f.files if k.endswith("theta")}
+
+    def fit(out, flights, *args, reuse=None, **kwargs):
+        done = real_fit(out, flights, *args, reuse=reuse, **kwargs)
+        if reuse is not None:
+            for name in [*sorted(p.name for p in Path(out).glob("*_cam0.npz")), "prediction_gp.npz"]:
+                fold, final = hyper(Path(out) / name), hyper(reuse / name)
+                thetas.extend((f"{name}:{k}", fold[k], final[k]) for k in final)
+        return done
+
+    monkeypatch.setattr(training, "_fit_models", fit)
+    s = TrainSettings(n_points=40, restarts=1, max_iter=3, sparse_iter=3, hetero_iterations=1,
+                      calibration_seconds=15, calibration_folds=2, calibration_refit=False)  # fmt: skip
+    train_models([collect_flight(120, seed=6)], tmp_path, kinds=["gp", "sparse", "hetgp"], settings=s)
+    assert len(thetas) == 2 * 5  # two folds: three observation models (hetGP: two GPs), the gp's prediction
+    for name, fold, final in thetas:
+        np.testing.assert_array_equal(fold, final, err_msg=name)
+    assert set(read_noise_scales(tmp_path)) == {"gp", "sparse", "hetgp"}
+
+
+def test_a_block_whose_filter_blows_up_counts_as_uncovered(monkeypatch) -> None:
+    """A covariance that can no longer be factored (raised deep in the update, as a 900-point
+    GP-EKF did under a large coverage factor) gives no track instead of ending the training
+    run, and its steps count as outside the bounds."""
+    import estimator_service.tracking as tracking
+    from estimator_service.matching import Block, coverage_curve, track_block
+
+    flight = collect_flight(30, seed=7)
+    n, m = 12, 10
+    pred = LinearGaussianPrediction(np.eye(n), np.zeros((n, 3)), np.full(n, 1e-4))
+    obs = LinearGaussianObservation(np.eye(m, n), np.full(m, 1.0))
+    block = Block(flight, slice(0, 40), pred, obs)
+    assert track_block(block, np.ones(n)) is not None
+    real = tracking.track_flight
+
+    def fragile(filt, *args, **kwargs):
+        if filt.prediction.scale[0] > 10:  # type: ignore[attr-defined]
+            raise np.linalg.LinAlgError("Matrix is not positive definite")
+        return real(filt, *args, **kwargs)
+
+    monkeypatch.setattr(tracking, "track_flight", fragile)
+    assert track_block(block, np.ones(n)) is not None and track_block(block, np.full(n, 20.0)) is None
+    curve = coverage_curve([block, block], np.full(n, 5.0))  # blows up from the factor 2.5 on
+    assert curve[COVERAGE_FACTORS.index(2.5) :] == [0.0] * 3 and min(curve[:4]) > 0.0

@@ -405,3 +405,25 @@ def test_over_outputs_runs_every_output_once_and_raises_its_errors() -> None:
     with pytest.raises(ValueError, match="output 3"):
         over_outputs(fail, 5)
     assert blas_threads() == before  # the one-thread limit is lifted again
+
+
+@pytest.mark.parametrize("name", ["exact", "sparse", "hetero"])
+def test_conditioned_keeps_the_hyperparameters_and_follows_the_new_data(models, toy, name: str) -> None:
+    """Conditioned on its own training data a fitted GP predicts as before; conditioned on
+    half of it, it keeps its hyperparameters and scalers and its posterior changes; data of
+    the wrong width is refused, naming the array."""
+    x, y = toy
+    gp = models[name]
+    q = np.random.default_rng(2).uniform(-3, 3, (7, 2))
+    a, b = gp.predict(q, return_jac=True), gp.conditioned(x, y).predict(q, return_jac=True)
+    for u, v in ((a.mean, b.mean), (a.var, b.var), (a.jac, b.jac)):
+        np.testing.assert_allclose(v, u, rtol=1e-8, atol=1e-10)
+    half = gp.conditioned(x[:40], y[:40])
+    inner, inner_half = (g.main if name == "hetero" else g for g in (gp, half))
+    np.testing.assert_array_equal(inner_half.theta, inner.theta)
+    np.testing.assert_array_equal(inner_half.x_scaler.std, inner.x_scaler.std)
+    assert not np.allclose(half.predict(q).mean, a.mean, atol=1e-3)
+    with pytest.raises(ValueError, match="X have 1 columns"):
+        gp.conditioned(x[:, :1], y)
+    with pytest.raises(ValueError, match="Y have 1 columns"):
+        gp.conditioned(x, y[:, :1])

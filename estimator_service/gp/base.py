@@ -16,6 +16,7 @@ __all__ = [
     "Progress",
     "ProgressCallback",
     "Scaler",
+    "check_conditioning_data",
     "check_query",
     "check_training_data",
 ]
@@ -135,6 +136,19 @@ def check_training_data(x: object, y: object, min_points: int = 2) -> tuple[Floa
         if bad.any():
             row = int(np.argwhere(bad)[0, 0])
             raise ValueError(f"training {name} contains NaN or Inf (first at row {row})")
+    return xa, ya
+
+
+def check_conditioning_data(
+    x: object, y: object, input_dim: int, output_dim: int
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`check_training_data` for a fitted GP of ``input_dim`` inputs and
+    ``output_dim`` outputs conditioned on new data (at least one point; shapes must match)."""
+    xa, ya = check_training_data(x, y, min_points=1)
+    if xa.shape[1] != input_dim:
+        raise ValueError(f"training inputs X have {xa.shape[1]} columns, the GP takes {input_dim}")
+    if ya.shape[1] != output_dim:
+        raise ValueError(f"training targets Y have {ya.shape[1]} columns, the GP has {output_dim} outputs")
     return xa, ya
 
 

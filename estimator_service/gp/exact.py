@@ -12,6 +12,7 @@ from estimator_service.gp.base import (
     GPPrediction,
     ProgressCallback,
     Scaler,
+    check_conditioning_data,
     check_query,
     check_training_data,
 )
@@ -118,6 +119,14 @@ class ExactGP:
             chol_t[p] = l.T
             alpha[p] = chol_solve(l, y[:, p])
         return cls(x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile)
+
+    def conditioned(self, x: FloatArray, y: FloatArray) -> ExactGP:
+        """The same hyperparameters and scalers, conditioned on other data ``x (n, d)``,
+        ``y (n, P)`` (original units): e.g. a fold of the training data that leaves out the
+        block a calibration scores it on (:mod:`estimator_service.crossfit`)."""
+        xa, ya = check_conditioning_data(x, y, self.input_dim, self.output_dim)
+        xs, ys = self.x_scaler.apply(xa), self.y_scaler.apply(ya)
+        return ExactGP.from_theta(xs, ys, self.theta, self.x_scaler, self.y_scaler)
 
     @property
     def input_dim(self) -> int:

@@ -18,6 +18,7 @@ from estimator_service.gp.base import (
     GPPrediction,
     ProgressCallback,
     Scaler,
+    check_conditioning_data,
     check_query,
     check_training_data,
 )
@@ -55,6 +56,17 @@ class HeteroscedasticGP:
     @property
     def output_dim(self) -> int:
         return self.main.output_dim
+
+    def conditioned(self, x: FloatArray, y: FloatArray) -> HeteroscedasticGP:
+        """The same hyperparameters, scalers and noise GP, conditioned on other data
+        ``x (n, d)``, ``y (n, P)`` (original units): the mean GP's per-point noise comes from
+        the noise GP at the new inputs."""
+        m = self.main
+        xa, ya = check_conditioning_data(x, y, self.input_dim, self.output_dim)
+        xs, ys = m.x_scaler.apply(xa), m.y_scaler.apply(ya)
+        profile = np.exp(self.noise.predict(xs, return_var=False).mean).T  # (P, n)
+        main = ExactGP.from_theta(xs, ys, m.theta, m.x_scaler, m.y_scaler, noise_profile=profile)
+        return HeteroscedasticGP(main, self.noise)
 
     def noise_var(self, x: FloatArray) -> FloatArray:
         """Input-dependent noise variance ``(M, P)`` in original units."""

@@ -20,6 +20,7 @@ from estimator_service.gp.base import (
     GPPrediction,
     ProgressCallback,
     Scaler,
+    check_conditioning_data,
     check_query,
     check_training_data,
 )
@@ -197,6 +198,13 @@ class SparseGP:
             lmt,
             lbt,
         )
+
+    def conditioned(self, x: FloatArray, y: FloatArray) -> SparseGP:
+        """The same hyperparameters, pseudo-inputs and scalers, conditioned on other data
+        ``x (n, d)``, ``y (n, P)`` (original units)."""
+        xa, ya = check_conditioning_data(x, y, self.input_dim, self.output_dim)
+        xs, ys = self.x_scaler.apply(xa), self.y_scaler.apply(ya)
+        return SparseGP.from_params(xs, ys, self.theta, self.pseudo_inputs, self.x_scaler, self.y_scaler)
 
     @property
     def input_dim(self) -> int:
