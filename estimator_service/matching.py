@@ -15,6 +15,7 @@ process noise to 260-700 times its one-step value and cost 12 % RMS (200-point G
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,10 +28,10 @@ from estimator_service.tracking import TrackResult
 
 __all__ = [
     "COVERAGE_FACTORS",
-    "FULL_COVERAGE",
     "GAUSSIAN_WITHIN3",
     "MATCH_ROUNDS",
     "MATCH_STEP",
+    "MATCH_TOLERANCE",
     "MIN_LEVERAGE",
     "Block",
     "coverage_curve",
@@ -44,10 +45,10 @@ FloatArray = NDArray[np.float64]
 GAUSSIAN_WITHIN3 = 0.9973  # P(|z| <= 3) for one Gaussian dimension
 MATCH_ROUNDS = 8  # matching rounds
 MATCH_STEP = 4.0  # the most one round changes an output's scale (either way)
+MATCH_TOLERANCE = 0.1  # matching stops once every output's e^2 / P is within 10 % of 1
 MIN_LEVERAGE = 0.25  # the weakest response of e^2 / P to its own scale that is followed
 #: factors on the matched process and observation noise tried, smallest first
 COVERAGE_FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
-FULL_COVERAGE = 0.999  # a coverage past which larger factors are not tracked
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,8 @@ def match_scales(
     """
     history, last = [], None  # last: the previous round's (scale, z2), for the leverage
     for _ in range(rounds):
+        if history and history[-1]["e2_over_var"] is not None and _converged(history[-1]["e2_over_var"]):
+            break
         runs = [r for r in (track_block(b, scale) for b in blocks) if r is not None]
         if not runs:  # every block blew up: keep the last scales that tracked
             history.append({"nees": None, "e2_over_var": None})
@@ -109,6 +112,10 @@ def match_scales(
         last = (scale, z2)
         scale = scale * np.clip(z2**power, 1 / max_step, max_step)
     return scale, history
+
+
+def _converged(z2: list[float]) -> bool:
+    return bool(np.all(np.abs(np.log(np.maximum(z2, 1e-12))) <= math.log(1 + MATCH_TOLERANCE)))
 
 
 def leverage(before: tuple[FloatArray, FloatArray], after: tuple[FloatArray, FloatArray]) -> FloatArray:
@@ -124,16 +131,15 @@ def leverage(before: tuple[FloatArray, FloatArray], after: tuple[FloatArray, Flo
 
 
 def coverage_curve(blocks: Sequence[Block], scale: FloatArray) -> list[float]:
-    """Per factor of :data:`COVERAGE_FACTORS`, the fraction of all the blocks' steps on
-    which the EKF keeps the truth within 3 sigma on every dimension (after a fraction of at
-    least :data:`FULL_COVERAGE`, the larger factors repeat it instead of being tracked)."""
+    """Per factor of :data:`COVERAGE_FACTORS` up to the first that reaches a Gaussian
+    belief's ``0.9973 ** n`` (the larger ones are not tracked), the fraction of all the
+    blocks' steps on which the EKF keeps the truth within 3 sigma on every dimension."""
     from estimator_service.tracking import within_3sigma
 
     curve: list[float] = []
     for factor in COVERAGE_FACTORS:
-        if curve and curve[-1] >= FULL_COVERAGE:
-            curve.append(curve[-1])
-            continue
+        if curve and curve[-1] >= GAUSSIAN_WITHIN3 ** len(scale):
+            break
         runs = [track_block(b, scale, factor) for b in blocks]
         inside = sum(within_3sigma(r.error, r.cov) * len(r.error) for r in runs if r is not None)
         steps = sum(len(r.error) if r is not None else len(range(len(b.flight))[b.rows]) - 1
