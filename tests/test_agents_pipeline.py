@@ -114,6 +114,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
         "1",
         "--calibration-seconds",
         "20",
+        "--calibration-condition-only",  # the refitted folds are tested in test_calibration.py
         "--kinds",
         "gp,egp,hetgp,sparse",
         "--quiet",
@@ -181,6 +182,8 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
         fig3_repeats=1,
         fig3_smallest=20,
         fig3_pseudo=(4,),
+        calibration_folds=2,
+        calibration_refit=False,  # the refitted folds are tested in test_calibration.py
     )
     res = reproduce(tmp_path, s, progress=False)
     report = (tmp_path / "report.md").read_text()
@@ -205,7 +208,8 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path) -> None:
     from agents.experiments.gap_sweep import gap_sweep
     from agents.experiments.reproduce import ReproduceSettings
 
-    s = ReproduceSettings(minutes=1.0, folds=2, points=30, pseudo=5, max_iter=3, track_seconds=20)
+    s = ReproduceSettings(minutes=1.0, folds=2, points=30, pseudo=5, max_iter=3, track_seconds=20,
+                          calibration_folds=2, calibration_refit=False)  # fmt: skip
     res = gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False)
     assert set(res["improvement_pct"]) == {"0", "1"}
     assert set(res["improvement_pct"]["1"]) == {"ekf/gp", "ekf/egp", "ukf/gp", "ukf/egp"}

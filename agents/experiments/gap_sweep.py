@@ -20,7 +20,7 @@ from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
 from estimator_service.tracking import mean_sd
-from estimator_service.training import TrainSettings, train_models
+from estimator_service.training import train_models
 
 __all__ = ["STRENGTHS", "gap_sweep"]
 
@@ -33,7 +33,7 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
               progress: bool = True) -> dict:  # fmt: skip
     """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``."""
     out.mkdir(parents=True, exist_ok=True)
-    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    settings = s.train_settings()
     bar = ProgressBar("gap sweep", len(strengths) * s.folds, unit="fold", enabled=progress)
     table: dict[str, dict[str, float]] = {}
     for strength in strengths:

@@ -63,6 +63,8 @@ class ReproduceSettings:
         and the pseudo-input counts of the sparse curve.
     reality, reality_strength
         The simulated world (:mod:`gpbf_env.reality`; strength None: the preset's).
+    calibration_folds, calibration_refit
+        The models' noise calibration (:class:`~estimator_service.training.TrainSettings`).
     """
 
     minutes: float = 20.0
@@ -82,6 +84,15 @@ class ReproduceSettings:
     seed: int = 0
     reality: str = "lab"
     reality_strength: float | None = None
+    calibration_folds: int = TrainSettings.calibration_folds
+    calibration_refit: bool = TrainSettings.calibration_refit
+
+    def train_settings(self) -> TrainSettings:
+        """How every experiment here trains its models."""
+        return TrainSettings(
+            self.points, self.pseudo, 1, self.max_iter, 1,
+            calibration_folds=self.calibration_folds, calibration_refit=self.calibration_refit,
+        )  # fmt: skip
 
     @property
     def world(self) -> dict[str, object]:
@@ -156,7 +167,7 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
 def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
     """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
     reduced = out / "models_no_left_turns"
-    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    settings = s.train_settings()
     train_models(
         [train],
         reduced,
@@ -247,7 +258,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     folds = split_folds(flight, s.folds)
     table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
     track: dict[tuple[str, str], list] = {}
-    settings = TrainSettings(s.points, s.pseudo, 1, s.max_iter, 1)
+    settings = s.train_settings()
     total = len(folds) * (1 + len(s.filters) * len(s.kinds))
     bar = ProgressBar("reproduce", total, unit="run", enabled=progress)
     for i, (train, test) in enumerate(folds):
