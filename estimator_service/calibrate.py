@@ -130,7 +130,7 @@ def calibrate_noise(
     the models never saw it) and the 3-sigma coverage factor on the process and observation
     noise (:mod:`estimator_service.matching`), starting from :func:`calibrate_process`'s
     one-step scales; written to ``folder/calibration.json``. Cross-fitting
-    (:mod:`estimator_service.crossfit`) does the same pooled over several blocks.
+    (:mod:`estimator_service.crossfit`) calls it once per fold and combines the folds.
 
     Stored as ``noise_scale`` (the geometric mean) times ``process_noise_scale``; returns
     their product per kind ``(n,)``.

@@ -66,7 +66,8 @@ def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackRe
     """The plain EKF over the block (the adaptive one would hide what is calibrated here),
     its process noise scaled by ``scale * factor (n,)`` and its observation noise by
     ``factor``; None when the filter's covariance blew up (not finite, or no longer
-    factorable), which the callers count as a block the scales do not cover."""
+    factorable: ``LinAlgError``), which the callers count as a block the scales do not
+    cover."""
     from estimator_service.factory import make_filter
     from estimator_service.models.calibration import NoiseScaledObservation, NoiseScaledPrediction
     from estimator_service.tracking import track_flight
@@ -79,7 +80,7 @@ def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackRe
     try:
         with np.errstate(all="ignore"):
             r = track_flight(filt, block.flight, rows=block.rows)
-    except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+    except np.linalg.LinAlgError:  # other errors are bugs, not a covariance blown up
         return None
     return r if np.isfinite(r.cov).all() and np.isfinite(r.mean).all() else None
 
