@@ -22,8 +22,10 @@ from pathlib import Path
 from estimator_service.cli import add_train_track, run
 from estimator_service.cli_args import (
     Parser,
+    add_calibration_options,
     add_filter_options,
     add_quiet,
+    calibration_options,
     checked_float,
     checked_int,
     package_version,
@@ -100,6 +102,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
     s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
     s = replace(s, seed=args.seed, reality=args.reality, reality_strength=args.reality_strength)
+    s = replace(s, **calibration_options(args))
     reproduce(args.out, s, progress=not args.quiet)
     print(f"wrote {args.out / 'report.md'}")
     return 0
@@ -112,7 +115,8 @@ def _gap_sweep(args: argparse.Namespace) -> int:
     from agents.experiments.reproduce import ReproduceSettings
 
     s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
-    gap_sweep(args.out, replace(s, seed=args.seed), tuple(args.strengths), progress=not args.quiet)
+    s = replace(s, seed=args.seed, **calibration_options(args))
+    gap_sweep(args.out, s, tuple(args.strengths), progress=not args.quiet)
     print(f"wrote {args.out / 'gap_sweep.md'}")
     return 0
 
@@ -219,6 +223,7 @@ def build_parser() -> Parser:
     r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of under an hour")
     r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
     add_world_options(r)
+    add_calibration_options(r)
     add_quiet(r)
     r.set_defaults(func=_reproduce)
 
@@ -230,6 +235,7 @@ def build_parser() -> Parser:
         "--strengths", type=checked_float(0.0, 4.0), nargs="+", default=[0.0, 0.5, 1.0, 2.0],
         help="reality strengths to compare",
     )  # fmt: skip
+    add_calibration_options(g)
     add_quiet(g)
     g.set_defaults(func=_gap_sweep)
     return p

@@ -60,7 +60,10 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     minutes, points, steps = (1, 60, 256) if args.smoke else (3, 300, 2048) if args.quick else (10, 900, 8192)
     with tempfile.TemporaryDirectory() as tmp:
         flight = collect_flight(minutes * 60, seed=0)
-        settings = TrainSettings(n_points=points, n_pseudo=50, restarts=1, max_iter=20)
+        # no noise calibration: it changes no filter's cost per step, and would dominate the run
+        settings = TrainSettings(
+            n_points=points, n_pseudo=50, restarts=1, max_iter=20, calibration_seconds=0.0
+        )
         train_models([flight], tmp, kinds=["param", "gp", "sparse"], settings=settings)
         rates = {
             name: throughput(AgentSpec(variant=v, model=m, models=tmp), steps)

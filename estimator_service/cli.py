@@ -17,15 +17,16 @@ import numpy as np
 
 from estimator_service.cli_args import (
     Parser,
+    add_calibration_options,
     add_filter_options,
     add_quiet,
+    calibration_options,
     checked_float,
     checked_int,
     filter_options,
     package_version,
     seed,
 )
-from estimator_service.crossfit import MAX_FOLDS
 from estimator_service.progress import ProgressBar
 
 __all__ = ["add_train_track", "main", "run_track", "run_train"]
@@ -52,8 +53,7 @@ def run_train(args: argparse.Namespace) -> int:
     settings = TrainSettings(
         args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations,
         sparse_iter=args.sparse_iter, hyper_points=args.hyper_points or None,
-        calibration_seconds=args.calibration_seconds, calibration_folds=args.calibration_folds,
-        calibration_refit=not args.calibration_condition_only,
+        calibration_seconds=args.calibration_seconds, **calibration_options(args),
     )  # fmt: skip
     avail = available_kinds(flights[0].system)
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
@@ -146,16 +146,7 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
         "--calibration-seconds", type=checked_float(0.0, 1e6), default=d.calibration_seconds,
         help="noise calibration on blocks of SECONDS of the first log (at most a quarter each; 0: none)",
     )  # fmt: skip
-    t.add_argument(
-        "--calibration-folds", type=checked_int(1, MAX_FOLDS), default=d.calibration_folds,
-        help="calibration folds: blocks spread over a single log, or with several logs each of the first "
-        "FOLDS logs held out whole in turn",
-    )  # fmt: skip
-    t.add_argument(
-        "--calibration-condition-only", action="store_true",
-        help="folds keep the final models' hyperparameters and are only conditioned on their data "
-        "(much cheaper; beliefs come out less honest on new flights)",
-    )  # fmt: skip
+    add_calibration_options(t)
     t.add_argument("--seed", type=seed, default=0, help="seed of the subsampling and restarts")
     add_quiet(t)
     t.set_defaults(func=run_train)

@@ -104,6 +104,29 @@ def add_quiet(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
+def add_calibration_options(p: argparse.ArgumentParser) -> None:
+    """``--calibration-folds`` and ``--calibration-condition-only`` (defaults: ``TrainSettings``')."""
+    from estimator_service.crossfit import MAX_FOLDS
+    from estimator_service.training import TrainSettings
+
+    p.add_argument(
+        "--calibration-folds", type=checked_int(1, MAX_FOLDS), default=TrainSettings.calibration_folds,
+        help="calibration folds: blocks spread over a single log, or with several logs each of the first "
+        "FOLDS logs held out whole in turn",
+    )  # fmt: skip
+    p.add_argument(
+        "--calibration-condition-only", action="store_true",
+        help="folds keep the final models' hyperparameters and are only conditioned on their data "
+        "(much cheaper; beliefs come out less honest on new flights)",
+    )  # fmt: skip
+
+
+def calibration_options(args: argparse.Namespace) -> dict[str, object]:
+    """``TrainSettings`` keyword arguments from :func:`add_calibration_options`' arguments."""
+    refit = not args.calibration_condition_only
+    return {"calibration_folds": args.calibration_folds, "calibration_refit": refit}
+
+
 def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = False) -> None:
     """``--models``, ``--filter``, ``--model`` and ``--particles``, as every command has them."""
     default = None if models_required else Path("out/models")

@@ -114,6 +114,8 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
         "1",
         "--calibration-seconds",
         "20",
+        "--calibration-folds",
+        "2",
         "--calibration-condition-only",  # the refitted folds are tested in test_calibration.py
         "--kinds",
         "gp,egp,hetgp,sparse",
@@ -137,7 +139,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     obs = kinds["gp"][1]  # every kind got per-output observation-noise scales, none below 1
     assert isinstance(obs, NoiseScaledObservation) and obs.scale.shape == (10,) and obs.scale.min() >= 1
     folds = json.loads((m / "calibration.json").read_text())["details"]["fold_details"]
-    assert len(folds) == 4 and all(0 < max(f["observation_frames"]) <= 80 for f in folds)  # 20 s blocks
+    assert len(folds) == 2 and all(0 < max(f["observation_frames"]) <= 80 for f in folds)  # 20 s blocks
     assert obs.inner.parts[0].gp.angle_output == 4  # the ellipse orientation is circular
     capsys.readouterr()
     assert (

@@ -313,6 +313,7 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     from agents.experiments.agent_data import agent_data_loop
     from agents.experiments.rl import RLSettings, report_existing, run
     from agents.experiments.rl_report import write_report
+    from estimator_service.training import TrainSettings
 
     shutil.copytree(models, tmp_path / "models")
     cfg = RLSettings(
@@ -338,7 +339,10 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
         == 0
     )
     agent = tmp_path / "agents" / "hover-state-0" / "model.zip"
-    loop = agent_data_loop(tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, points=40)
+    tiny = TrainSettings(n_points=40, calibration_folds=2, calibration_refit=False)  # refit: test_calibration
+    loop = agent_data_loop(
+        tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, settings=tiny
+    )
     assert set(loop["tracking"]) == {"scripted", "scripted+agent"} and loop["heldout_episodes"] >= 1
     write_report(tmp_path, data)
     report = (tmp_path / "report.md").read_text()

@@ -46,9 +46,12 @@ def track_episodes(models: Path, kind: str, flight: Flight) -> dict[str, float]:
 
 def agent_data_loop(
     out: Path, agent: Path, *, scripted_minutes: float = 10, agent_minutes: float = 5,
-    heldout_minutes: float = 5, points: int = 600, seed: int = 0,
+    heldout_minutes: float = 5, seed: int = 0, settings: TrainSettings | None = None,
 ) -> dict[str, Any]:  # fmt: skip
-    """Train on scripted vs scripted + agent flights, track held-out agent flights with each."""
+    """Train on scripted vs scripted + agent flights, track held-out agent flights with each.
+
+    ``settings``: the models' training (default: 600 points, the default calibration)."""
+    settings = TrainSettings(n_points=600) if settings is None else settings
     _, spec = load_agent(agent)
     env_id = TASK_ENVS[spec.task]
     policy = AgentPolicy(agent)
@@ -60,13 +63,13 @@ def agent_data_loop(
     for name, flights in (("scripted", [scripted]), ("scripted+agent", [scripted, flown])):
         folder = out / "agent_data" / name
         if not (folder / "prediction_gp.npz").exists():
-            train_models(flights, folder, kinds=["param", "gp"], settings=TrainSettings(n_points=points))
+            train_models(flights, folder, kinds=["param", "gp"], settings=settings)
         table[name] = {kind: track_episodes(folder, kind, heldout) for kind in ("gp", "param")}
     data = {
         "agent": str(agent),
         "task": spec.task,
         "minutes": {"scripted": scripted_minutes, "agent": agent_minutes, "heldout": heldout_minutes},
-        "points": points,
+        "points": settings.n_points,
         "heldout_episodes": len(_episodes(heldout)),
         "tracking": table,
     }
