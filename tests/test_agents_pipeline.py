@@ -167,7 +167,9 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
 
 
-def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
+def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dataclasses import replace
+
     from agents.experiments.reproduce import ReproduceSettings, reproduce, split_folds
 
     s = ReproduceSettings(
@@ -204,6 +206,19 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path) -> None:
     for g in ("position_mm", "velocity_mm_s"):  # the paper's mean norm beside RMS, exact-state scores
         assert 0 < res["table5_6"]["gp"][f"norm_{g}"][0] and 0 < res["tracking"]["ekf/gp"][f"exact_{g}"][0]
     assert "Mean error norm" in report and "against the exact state" in report
+    import agents.experiments.fig3 as fig3_module
+    import agents.experiments.reproduce as reproduce_module
+
+    def no_training(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a resumed run trained again")
+
+    monkeypatch.setattr(reproduce_module, "train_models", no_training)
+    monkeypatch.setattr(fig3_module, "train_models", no_training)
+    again = reproduce(tmp_path, s, progress=False)  # resumes: nothing trained again, the same tables
+    untimed = lambda r: {k: {m: v for m, v in d.items() if m != "step_ms"} for k, d in r["tracking"].items()}  # noqa: E731
+    assert untimed(again) == untimed(res) and again["fig3"] == res["fig3"]
+    with pytest.raises(ValueError, match=r"other settings \(points\)"):
+        reproduce(tmp_path, replace(s, points=41), progress=False)
 
 
 def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ log-likelihood of the truth and the aggregate RMS.
 
 from __future__ import annotations
 
+import json
 import math
 import tempfile
 from collections.abc import Callable, Sequence
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator_service.factory import build_filter
+from estimator_service.files import atomic_write_text
 from estimator_service.flight import Flight
 from estimator_service.tracking import aggregate_rms, mean_sd, segments, track_flight
 from estimator_service.training import TrainSettings, train_models
@@ -61,22 +63,32 @@ def data_sparsity(
     track_seconds: float,
     seed: int = 0,
     tick: Callable[[], None] | None = None,
+    cache: Path | None = None,
 ) -> dict[str, dict[str, dict[str, list[float]]]]:
-    """Run both curves; ``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}``."""
+    """Run both curves; ``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}``.
+
+    ``cache``: a folder keeping each run's scores (``<curve>_<size>_<repeat>.json``); runs
+    already there are not trained again, so an interrupted experiment resumes."""
     seg = round(track_seconds / test.dt)
     jobs = [("points", n, "gp") for n in points] + [("pseudo", m, "sparse") for m in pseudo]
     out: dict[str, dict[str, dict[str, list[float]]]] = {"points": {}, "pseudo": {}}
-    with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:
-        for curve, size, kind in jobs:
-            runs = []
-            for r in range(repeats):
-                s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
-                folder = Path(tmp) / f"{curve}_{size}_{r}"
-                train_models([train], folder, kinds=[kind], settings=s, seed=seed + 1000 * r + size)
-                runs.append(_track(folder, kind, test, seg))
-                if tick:
-                    tick()
-            out[curve][str(size)] = {f: mean_sd([x[f] for x in runs]) for f in FILTERS}
+    for curve, size, kind in jobs:
+        runs = []
+        for r in range(repeats):
+            s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
+            done = None if cache is None else cache / f"{curve}_{size}_{r}.json"
+            if done is not None and done.exists():
+                runs.append(json.loads(done.read_text()))
+            else:
+                with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:
+                    train_models([train], tmp, kinds=[kind], settings=s, seed=seed + 1000 * r + size)
+                    runs.append(_track(Path(tmp), kind, test, seg))
+                if done is not None:
+                    done.parent.mkdir(parents=True, exist_ok=True)
+                    atomic_write_text(done, json.dumps(runs[-1]))
+            if tick:
+                tick()
+        out[curve][str(size)] = {f: mean_sd([x[f] for x in runs]) for f in FILTERS}
     return out
 
 

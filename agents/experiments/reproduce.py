@@ -28,6 +28,7 @@ from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.models.base import PredictionModel
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 from estimator_service.progress import ProgressBar
+from estimator_service.store import MANIFEST_FILE
 from estimator_service.tracking import (
     TrackResult,
     aggregate_rms,
@@ -167,15 +168,11 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
 def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
     """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
     reduced = out / "models_no_left_turns"
-    settings = s.train_settings()
-    train_models(
-        [train],
-        reduced,
-        kinds=["param", "gp"],
-        settings=settings,
-        seed=s.seed,
-        exclude=lambda inp: inp[:, 14] > 0.3,
-    )
+    if not (reduced / MANIFEST_FILE).exists():  # complete from an earlier run (see reproduce)
+        no_left = lambda inp: inp[:, 14] > 0.3  # noqa: E731
+        train_models(
+            [train], reduced, kinds=["param", "gp"], settings=s.train_settings(), seed=s.seed, exclude=no_left
+        )
     return plot_fig4(folder_full, reduced, test, out / "fig4_left_turns.png")
 
 
@@ -250,9 +247,28 @@ def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]
     return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
 
 
-def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
-    """Run everything and write ``report.md`` and figures into ``out``."""
+def _resume_check(out: Path, s: ReproduceSettings) -> None:
+    """Record ``s`` in ``out/settings.json``; a folder that holds a run with other settings is
+    refused (its models would be mixed into this one's tables)."""
+    path = out / "settings.json"
+    mine = json.loads(json.dumps(asdict(s)))  # tuples as lists, as read back
+    if path.exists():
+        theirs = json.loads(path.read_text())
+        if theirs != mine:
+            diff = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+            msg = f"out: {out} holds a run with other settings ({', '.join(diff)}); use a new folder"
+            raise ValueError(msg)
     out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(mine, indent=2))
+
+
+def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
+    """Run everything and write ``report.md`` and figures into ``out``.
+
+    Resumes: fold models already in ``out`` (``models_fold<i>``, complete ones only) and Fig. 3
+    runs already scored (``fig3_runs/``) are kept, provided ``out`` was made with the same
+    settings."""
+    _resume_check(out, s)
     t0 = time.perf_counter()
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
     folds = split_folds(flight, s.folds)
@@ -263,7 +279,8 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     bar = ProgressBar("reproduce", total, unit="run", enabled=progress)
     for i, (train, test) in enumerate(folds):
         folder = out / f"models_fold{i}"
-        train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
+        if not (folder / MANIFEST_FILE).exists():  # written last: a complete folder from an earlier run
+            train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
         bar.advance()
         for kind in table5:
             if kind in s.kinds:
@@ -308,7 +325,7 @@ def _fig3(fold: tuple[Flight, Flight], s: ReproduceSettings, settings: TrainSett
     bar = ProgressBar("fig. 3", (len(points) + len(pseudo)) * s.fig3_repeats, unit="run", enabled=progress)
     res = data_sparsity(
         *fold, settings, points=points, pseudo=pseudo, repeats=s.fig3_repeats,
-        track_seconds=s.track_seconds, seed=s.seed, tick=bar.advance,
+        track_seconds=s.track_seconds, seed=s.seed, tick=bar.advance, cache=out / "fig3_runs",
     )  # fmt: skip
     bar.close()
     plot_data_sparsity(res, out / "fig3_training_points.png")
