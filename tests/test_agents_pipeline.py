@@ -167,6 +167,10 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
 
 
+def _no_training(*args: object, **kwargs: object) -> None:
+    raise AssertionError("a resumed run trained again")
+
+
 def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from dataclasses import replace
 
@@ -209,11 +213,8 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
     import agents.experiments.fig3 as fig3_module
     import agents.experiments.reproduce as reproduce_module
 
-    def no_training(*args: object, **kwargs: object) -> None:
-        raise AssertionError("a resumed run trained again")
-
-    monkeypatch.setattr(reproduce_module, "train_models", no_training)
-    monkeypatch.setattr(fig3_module, "train_models", no_training)
+    monkeypatch.setattr(reproduce_module, "train_models", _no_training)
+    monkeypatch.setattr(fig3_module, "train_models", _no_training)
     again = reproduce(tmp_path, s, progress=False)  # resumes: nothing trained again, the same tables
     untimed = lambda r: {k: {m: v for m, v in d.items() if m != "step_ms"} for k, d in r["tracking"].items()}  # noqa: E731
     assert untimed(again) == untimed(res) and again["fig3"] == res["fig3"]
@@ -221,7 +222,8 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
         reproduce(tmp_path, replace(s, points=41), progress=False)
 
 
-def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path) -> None:
+def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import agents.experiments.gap_sweep as gap_module
     from agents.experiments.gap_sweep import gap_sweep
     from agents.experiments.reproduce import ReproduceSettings
 
@@ -234,6 +236,10 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path) -> None:
     assert (tmp_path / "gap_sweep.png").stat().st_size > 5_000 and "| 1 |" in (
         tmp_path / "gap_sweep.md"
     ).read_text()
+    monkeypatch.setattr(gap_module, "train_models", _no_training)  # resumes: the same table
+    assert gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False) == res
+    with pytest.raises(ValueError, match=r"other settings \(strengths\)"):
+        gap_sweep(tmp_path, s, strengths=(0.0, 2.0), progress=False)
 
 
 def test_landmark_experiment_tracks_with_all_filters() -> None:

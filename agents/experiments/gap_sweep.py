@@ -15,7 +15,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from agents.experiments.report import improvement
-from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
+from agents.experiments.reproduce import ReproduceSettings, resume_check, split_folds, tracking, trained
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
@@ -31,8 +31,11 @@ FILTERS = ("ekf", "ukf")
 
 def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = STRENGTHS,
               progress: bool = True) -> dict:  # fmt: skip
-    """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``.
+
+    Resumes like :func:`~agents.experiments.reproduce.reproduce`: complete fold models from an
+    earlier run with the same settings are kept."""
+    resume_check(out, {**asdict(s), "strengths": list(strengths)})
     settings = s.train_settings()
     bar = ProgressBar("gap sweep", len(strengths) * s.folds, unit="fold", enabled=progress)
     table: dict[str, dict[str, float]] = {}
@@ -42,7 +45,8 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
         track: dict[str, list] = {}
         for i, (train, test) in enumerate(split_folds(flight, s.folds)):
             folder = out / f"models_s{strength:g}_fold{i}"
-            train_models([train], folder, kinds=KINDS, settings=settings, seed=s.seed + i)
+            if not trained(folder):
+                train_models([train], folder, kinds=KINDS, settings=settings, seed=s.seed + i)
             for filt in FILTERS:
                 for kind in KINDS:
                     track.setdefault(f"{filt}/{kind}", []).append(tracking(folder, test, world, filt, kind))

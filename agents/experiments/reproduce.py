@@ -41,7 +41,7 @@ from estimator_service.tracking import (
 )
 from estimator_service.training import TrainSettings, prediction_data, train_models
 
-__all__ = ["ReproduceSettings", "reproduce", "split_folds"]
+__all__ = ["ReproduceSettings", "reproduce", "resume_check", "split_folds", "trained"]
 
 
 @dataclass(frozen=True)
@@ -168,7 +168,7 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
 def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
     """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
     reduced = out / "models_no_left_turns"
-    if not (reduced / MANIFEST_FILE).exists():  # complete from an earlier run (see reproduce)
+    if not trained(reduced):
         no_left = lambda inp: inp[:, 14] > 0.3  # noqa: E731
         train_models(
             [train], reduced, kinds=["param", "gp"], settings=s.train_settings(), seed=s.seed, exclude=no_left
@@ -247,11 +247,12 @@ def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]
     return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
 
 
-def _resume_check(out: Path, s: ReproduceSettings) -> None:
-    """Record ``s`` in ``out/settings.json``; a folder that holds a run with other settings is
-    refused (its models would be mixed into this one's tables)."""
+def resume_check(out: Path, settings: dict) -> None:
+    """Record an experiment's ``settings`` in ``out/settings.json``; a folder that holds a run
+    with other settings is refused, naming them (its models would be mixed into this run's
+    tables)."""
     path = out / "settings.json"
-    mine = json.loads(json.dumps(asdict(s)))  # tuples as lists, as read back
+    mine = json.loads(json.dumps(settings))  # tuples as lists, as read back
     if path.exists():
         theirs = json.loads(path.read_text())
         if theirs != mine:
@@ -262,13 +263,18 @@ def _resume_check(out: Path, s: ReproduceSettings) -> None:
     atomic_write_text(path, json.dumps(mine, indent=2))
 
 
+def trained(folder: Path) -> bool:
+    """Whether ``folder`` holds complete models (``train_models`` writes the manifest last)."""
+    return (folder / MANIFEST_FILE).exists()
+
+
 def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     """Run everything and write ``report.md`` and figures into ``out``.
 
     Resumes: fold models already in ``out`` (``models_fold<i>``, complete ones only) and Fig. 3
     runs already scored (``fig3_runs/``) are kept, provided ``out`` was made with the same
     settings."""
-    _resume_check(out, s)
+    resume_check(out, asdict(s))
     t0 = time.perf_counter()
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
     folds = split_folds(flight, s.folds)
@@ -279,7 +285,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     bar = ProgressBar("reproduce", total, unit="run", enabled=progress)
     for i, (train, test) in enumerate(folds):
         folder = out / f"models_fold{i}"
-        if not (folder / MANIFEST_FILE).exists():  # written last: a complete folder from an earlier run
+        if not trained(folder):  # complete from an earlier run in this folder
             train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
         bar.advance()
         for kind in table5:
