@@ -253,6 +253,26 @@ def test_non_finite_prediction_keeps_the_belief_and_flags_divergence(cls) -> Non
     assert i.diverged and i2.diverged and b is PRIOR
 
 
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_a_covariance_that_cannot_be_factored_is_flagged_not_raised(cls) -> None:
+    """A belief blown up to huge, indefinite entries (as a diverging calibration run
+    produced): the step flags divergence instead of raising ``LinAlgError`` (the UKF's
+    sigma points need a factor; the EKF refuses the update), and a batch mate is
+    unaffected."""
+    cov = np.eye(4)
+    cov[:2, :2] = [[1e200, 1e200], [1e200, -1e200]]  # no eigenvalue floor makes it factorable
+    blown = GaussianBelief(PRIOR.mean, cov)
+    filt = cls(PRED, OBS)
+    post, info = filt.step(blown, np.zeros(2), np.zeros(3), None)
+    assert info.diverged and np.isfinite(post.mean).all()  # the belief or its prediction
+    (b, i), (good, i2) = filt.step_many(
+        [blown, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
+    )
+    assert i.diverged and np.isfinite(b.mean).all() and not i2.diverged
+    ref, _ = filt.step(PRIOR, np.zeros(2), np.zeros(3), None)
+    np.testing.assert_allclose(good.mean, ref.mean, rtol=1e-12, atol=1e-12)
+
+
 def test_implausible_innovation_is_flagged() -> None:
     _, info = EKF(PRED, OBS).step(PRIOR, np.zeros(2), np.array([100.0, -100.0, 0.0]), None)
     assert info.diverged and info.nis > 1e3

@@ -17,6 +17,7 @@ __all__ = [
     "ParticleBelief",
     "StepInfo",
     "Wrapping",
+    "factorable",
     "make_pd",
     "nis_from_cholesky",
 ]
@@ -180,6 +181,17 @@ def make_pd(cov: FloatArray, floor: float = 1e-12) -> tuple[FloatArray, FloatArr
     c = (v * np.maximum(w, eps)) @ v.T
     c = 0.5 * (c + c.T)
     return c, np.linalg.cholesky(c + eps * np.eye(len(c)))
+
+
+def factorable(cov: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """:func:`make_pd` of ``cov``, or None where no finite factor exists (a covariance that
+    blew up: overflowing entries, or one that no eigenvalue floor makes factorable)."""
+    try:
+        with np.errstate(all="ignore"):
+            c, l = make_pd(cov)
+    except np.linalg.LinAlgError:
+        return None
+    return (c, l) if np.isfinite(c).all() and np.isfinite(l).all() else None
 
 
 def nis_from_cholesky(ls: FloatArray, r: FloatArray) -> float:

@@ -16,9 +16,9 @@ from estimator_service.filters.common import (
     GaussianBelief,
     StepInfo,
     Wrapping,
+    factorable,
     finite,
     implausible,
-    make_pd,
     nis_from_cholesky,
 )
 from estimator_service.models.base import ObservationModel, PredictionModel
@@ -52,8 +52,10 @@ def _kalman_update(
     nis = nis_from_cholesky(ls, r)
     if not finite(mean, cov):
         return prior, StepInfo(nis, len(r), True)
-    cov, _ = make_pd(cov)
-    return GaussianBelief(mean, cov), StepInfo(nis, len(r), implausible(nis, len(r)))
+    pd = factorable(cov)
+    if pd is None:
+        return prior, StepInfo(nis, len(r), True)
+    return GaussianBelief(mean, pd[0]), StepInfo(nis, len(r), implausible(nis, len(r)))
 
 
 class _GaussianFilter:
@@ -264,9 +266,13 @@ class UKF(_GaussianFilter):
         )
 
     def sigma_points(self, belief: GaussianBelief) -> FloatArray:
-        """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns."""
-        _, l = make_pd(belief.cov)
-        d = self._w[2] * l.T
+        """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns (NaN
+        where the covariance cannot be factored: the step then keeps its belief and flags
+        divergence, as for any non-finite prediction)."""
+        pd = factorable(belief.cov)
+        if pd is None:
+            return np.full((2 * belief.mean.size + 1, belief.mean.size), np.nan)
+        d = self._w[2] * pd[1].T
         return np.concatenate([belief.mean[None], belief.mean + d, belief.mean - d])
 
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
