@@ -122,7 +122,8 @@ for m in pkgutil.walk_packages(estimator_service.__path__, "estimator_service.")
         importlib.import_module(m.name)
 from estimator_service.cli import main
 assert main(["train", {str(log)!r}, "--system", {str(system)!r}, "--out", {str(tmp_path / "m")!r},
-             "--points", "60", "--calibration-seconds", "5", "--quiet"]) == 0
+             "--points", "60", "--calibration-seconds", "5", "--calibration-folds", "2",
+             "--calibration-condition-only", "--quiet"]) == 0
 assert main(["track", {str(log)!r}, "--system", {str(system)!r}, "--models", {str(tmp_path / "m")!r},
              "--filter", "ekf", "--quiet"]) == 0
 from estimator_service.service.server import EstimatorService, ServiceConfig

@@ -32,7 +32,8 @@ def flight():
 @pytest.fixture(scope="module")
 def models(flight, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("fleet_models")
-    s = TrainSettings(n_points=50, n_pseudo=8, restarts=1, max_iter=8, hetero_iterations=1)
+    s = TrainSettings(n_points=50, n_pseudo=8, restarts=1, max_iter=8, hetero_iterations=1,
+                      calibration_folds=2, calibration_refit=False)  # fmt: skip
     train_models([flight], out, kinds=["param", "gp"], settings=s)
     return out
 

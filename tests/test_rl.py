@@ -30,7 +30,9 @@ def models(tmp_path_factory) -> str:
         [flight],
         out,
         kinds=["param", "gp"],
-        settings=TrainSettings(n_points=60, n_pseudo=8, restarts=1, max_iter=10),
+        settings=TrainSettings(  # calibration is not the subject here (refitted folds: test_calibration)
+            n_points=60, n_pseudo=8, restarts=1, max_iter=10, calibration_folds=2, calibration_refit=False
+        ),
     )
     return str(out)
 
