@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from estimator_service.gp.base import GPModel, GPPrediction, check_query, check_training_data
 from estimator_service.reprs import short_repr
 
-__all__ = ["EnhancedGP", "MeanFunction", "fit_enhanced", "numeric_jacobian"]
+__all__ = ["EnhancedGP", "MeanFunction", "fit_enhanced", "numeric_jacobian", "value_and_jacobian"]
 
 FloatArray = NDArray[np.float64]
 MeanFunction = Callable[[FloatArray], FloatArray]  # (M, d) -> (M, P)
@@ -20,12 +20,22 @@ JacobianFunction = Callable[[FloatArray], FloatArray]  # (M, d) -> (M, P, d)
 
 def numeric_jacobian(f: MeanFunction, x: FloatArray, rel_step: float = 1e-6) -> FloatArray:
     """Central-difference Jacobian ``(M, P, d)`` of ``f`` at ``x (M, d)`` in one batched call."""
+    return value_and_jacobian(f, x, rel_step)[1]
+
+
+def value_and_jacobian(
+    f: MeanFunction, x: FloatArray, rel_step: float = 1e-6
+) -> tuple[FloatArray, FloatArray]:
+    """``f(x) (M, P)`` and its central-difference Jacobian ``(M, P, d)`` from one batched
+    call of ``f`` at ``x (M, d)`` and the ``2 d`` points around each row (a parametric model's
+    cost is mostly per call, not per point)."""
     m, d = x.shape
     h = rel_step * np.maximum(1.0, np.abs(x))  # (M, d)
     eye = np.eye(d)
     pts = np.concatenate([x[:, None, :] + h[:, :, None] * eye, x[:, None, :] - h[:, :, None] * eye], axis=1)
-    vals = np.asarray(f(pts.reshape(-1, d))).reshape(m, 2 * d, -1)
-    return ((vals[:, :d] - vals[:, d:]) / (2.0 * h[:, :, None])).transpose(0, 2, 1)
+    vals = np.asarray(f(np.concatenate([x, pts.reshape(-1, d)]))).reshape(m * (2 * d + 1), -1)
+    at, vals = vals[:m], vals[m:].reshape(m, 2 * d, -1)
+    return at, ((vals[:, :d] - vals[:, d:]) / (2.0 * h[:, :, None])).transpose(0, 2, 1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,11 +78,15 @@ class EnhancedGP:
         res = self.residual.predict(
             xq, return_var=return_var, return_jac=return_jac, include_noise=include_noise
         )
-        mean = res.mean + np.asarray(self.mean_function(xq)).reshape(res.mean.shape)
         jac = None
-        if return_jac:
-            fj = self.mean_jacobian(xq) if self.mean_jacobian else numeric_jacobian(self.mean_function, xq)
+        if return_jac and self.mean_jacobian is None:
+            fx, fj = value_and_jacobian(self.mean_function, xq)
             jac = res.jac + fj
+        else:
+            fx = self.mean_function(xq)
+            if return_jac and self.mean_jacobian is not None:
+                jac = res.jac + self.mean_jacobian(xq)
+        mean = res.mean + np.asarray(fx).reshape(res.mean.shape)
         return GPPrediction(mean, res.var, jac)
 
 
