@@ -216,18 +216,25 @@ def build_parser() -> Parser:
     add_quiet(e)
     e.set_defaults(func=_eval_agent)
 
-    r = sub.add_parser("reproduce", help="run the paper's experiments and write a report")
+    r = sub.add_parser(
+        "reproduce", help="run the paper's experiments and write a report",
+        description="Run the paper's experiments and write a report. Resumable: run the same command "
+        "again and the models and Fig. 3 runs already complete in --out are kept.",
+    )  # fmt: skip
     r.add_argument(
         "--out", type=Path, default=Path("out/reproduce"), help="output folder (report.md, figures)"
     )
-    r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of under an hour")
+    r.add_argument("--quick", action="store_true", help="small sizes: a few minutes instead of hours")
     r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
     add_world_options(r)
     add_calibration_options(r)
     add_quiet(r)
     r.set_defaults(func=_reproduce)
 
-    g = sub.add_parser("gap-sweep", help="GP and EGP gains over Param against the reality strength")
+    g = sub.add_parser(
+        "gap-sweep", help="GP and EGP gains over Param against the reality strength",
+        description="GP and EGP gains over Param against the reality strength. Resumable like reproduce.",
+    )  # fmt: skip
     g.add_argument("--out", type=Path, default=Path("out/gap_sweep"), help="output folder")
     g.add_argument("--quick", action="store_true", help="the reproduction's quick sizes")
     g.add_argument("--seed", type=seed, default=0, help="seed of the flights and the training")
