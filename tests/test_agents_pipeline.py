@@ -168,7 +168,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
 
 
 def _no_training(*args: object, **kwargs: object) -> None:
-    raise AssertionError("a resumed run trained again")
+    raise AssertionError("a resumed run trained or tracked again")
 
 
 def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -214,6 +214,7 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
     import agents.experiments.reproduce as reproduce_module
 
     monkeypatch.setattr(reproduce_module, "train_models", _no_training)
+    monkeypatch.setattr(reproduce_module, "tracking", _no_training)  # the folds' scores are kept too
     monkeypatch.setattr(fig3_module, "train_models", _no_training)
     again = reproduce(tmp_path, s, progress=False)  # resumes: nothing trained again, the same tables
     untimed = lambda r: {k: {m: v for m, v in d.items() if m != "step_ms"} for k, d in r["tracking"].items()}  # noqa: E731

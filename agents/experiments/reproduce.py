@@ -268,12 +268,31 @@ def trained(folder: Path) -> bool:
     return (folder / MANIFEST_FILE).exists()
 
 
+def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: list[str], tick) -> dict:
+    """One fold's one-step errors and tracking scores, kept in ``fold_scores/<folder>.json``
+    beside the models so that a resumed run does not track the fold again (minutes at paper
+    size)."""
+    done = folder.parent / "fold_scores" / f"{folder.name}.json"
+    if done.exists():
+        for _ in range(len(s.filters) * len(s.kinds)):
+            tick()
+        return json.loads(done.read_text())
+    res: dict = {"table5": {k: one_step_errors(folder, test, k) for k in one_step}, "tracking": {}}
+    for filt in s.filters:
+        for kind in s.kinds:
+            res["tracking"][f"{filt}/{kind}"] = tracking(folder, test, s, filt, kind)
+            tick()
+    done.parent.mkdir(exist_ok=True)
+    atomic_write_text(done, json.dumps(res))
+    return res
+
+
 def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     """Run everything and write ``report.md`` and figures into ``out``.
 
-    Resumes: fold models already in ``out`` (``models_fold<i>``, complete ones only) and Fig. 3
-    runs already scored (``fig3_runs/``) are kept, provided ``out`` was made with the same
-    settings."""
+    Resumes: fold models already in ``out`` (``models_fold<i>``, complete ones only), their
+    scores (``fold_scores/``) and Fig. 3 runs already scored (``fig3_runs/``)
+    are kept, provided ``out`` was made with the same settings."""
     resume_check(out, asdict(s))
     t0 = time.perf_counter()
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
@@ -288,13 +307,11 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
         if not trained(folder):  # complete from an earlier run in this folder
             train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
         bar.advance()
-        for kind in table5:
-            if kind in s.kinds:
-                table5[kind].append(one_step_errors(folder, test, kind))
-        for filt in s.filters:
-            for kind in s.kinds:
-                track.setdefault((filt, kind), []).append(tracking(folder, test, s, filt, kind))
-                bar.advance()
+        scores = _fold_scores(folder, test, s, [k for k in table5 if k in s.kinds], bar.advance)
+        for kind, v in scores["table5"].items():
+            table5[kind].append(v)
+        for key, v in scores["tracking"].items():
+            track.setdefault(tuple(key.split("/")), []).append(v)
     bar.close()
     results = {
         "fig3": _fig3(folds[0], s, settings, out, progress),
