@@ -65,9 +65,9 @@ class Block:
 def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackResult | None:
     """The plain EKF over the block (the adaptive one would hide what is calibrated here),
     its process noise scaled by ``scale * factor (n,)`` and its observation noise by
-    ``factor``; None when the filter's covariance blew up (not finite, or no longer
-    factorable: ``LinAlgError``), which the callers count as a block the scales do not
-    cover."""
+    ``factor``; None when the filter's covariance blew up (not finite, or at some step no
+    longer factorable, which the filter flags as divergence and carries on), which the
+    callers count as a block the scales do not cover."""
     from estimator_service.factory import make_filter
     from estimator_service.models.calibration import NoiseScaledObservation, NoiseScaledPrediction
     from estimator_service.tracking import track_flight
@@ -80,9 +80,12 @@ def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackRe
     try:
         with np.errstate(all="ignore"):
             r = track_flight(filt, block.flight, rows=block.rows)
+            if not (np.isfinite(r.cov).all() and np.isfinite(r.mean).all()):
+                return None
+            np.linalg.cholesky(0.5 * (r.cov + r.cov.transpose(0, 2, 1)))  # every step's belief factorable
     except np.linalg.LinAlgError:  # other errors are bugs, not a covariance blown up
         return None
-    return r if np.isfinite(r.cov).all() and np.isfinite(r.mean).all() else None
+    return r
 
 
 def match_scales(

@@ -3,6 +3,7 @@ and the held-out observation-noise scales."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -273,3 +274,12 @@ def test_a_block_whose_filter_blows_up_counts_as_uncovered(monkeypatch) -> None:
     assert track_block(block, np.ones(n)) is not None and track_block(block, np.full(n, 20.0)) is None
     curve = coverage_curve([block, block], np.full(n, 5.0))  # blows up from the factor 2.5 on
     assert curve[COVERAGE_FACTORS.index(2.5) :] == [0.0] * 3 and min(curve[:4]) > 0.0
+
+    def kept_going(filt, *args, **kwargs):  # the filter flagged divergence and carried on
+        r = real(filt, *args, **kwargs)
+        cov = r.cov.copy()
+        cov[5, :2, :2] = [[1e200, 1e200], [1e200, -1e200]]  # not factorable at one step
+        return dataclasses.replace(r, cov=cov)
+
+    monkeypatch.setattr(tracking, "track_flight", kept_going)
+    assert track_block(block, np.ones(n)) is None

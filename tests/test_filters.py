@@ -253,6 +253,26 @@ def test_non_finite_prediction_keeps_the_belief_and_flags_divergence(cls) -> Non
     assert i.diverged and i2.diverged and b is PRIOR
 
 
+@dataclass(frozen=True)
+class NaNRefusing:
+    """A model that refuses non-finite queries, as the GPs do (``check_query``)."""
+
+    inner: object
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
+
+    def predict(self, x, u, **kw):
+        if not np.isfinite(x).all():
+            raise ValueError("query contains NaN or Inf")
+        return self.inner.predict(x, u, **kw)
+
+    def observe(self, x, **kw):
+        if not np.isfinite(x).all():
+            raise ValueError("query contains NaN or Inf")
+        return self.inner.observe(x, **kw)
+
+
 @pytest.mark.parametrize("cls", [EKF, UKF])
 def test_a_covariance_that_cannot_be_factored_is_flagged_not_raised(cls) -> None:
     """A belief blown up to huge, indefinite entries (as a diverging calibration run
@@ -262,9 +282,11 @@ def test_a_covariance_that_cannot_be_factored_is_flagged_not_raised(cls) -> None
     cov = np.eye(4)
     cov[:2, :2] = [[1e200, 1e200], [1e200, -1e200]]  # no eigenvalue floor makes it factorable
     blown = GaussianBelief(PRIOR.mean, cov)
-    filt = cls(PRED, OBS)
+    filt = cls(NaNRefusing(PRED), NaNRefusing(OBS))  # no model is asked about NaN
     post, info = filt.step(blown, np.zeros(2), np.zeros(3), None)
     assert info.diverged and np.isfinite(post.mean).all()  # the belief or its prediction
+    post, info = filt.update(blown, np.zeros(3))  # an update alone is refused the same way
+    assert info.diverged and post is blown
     (b, i), (good, i2) = filt.step_many(
         [blown, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
     )

@@ -36,7 +36,7 @@ def _kalman_update(
     """Kalman update from innovation ``r``, its covariance ``s`` and cross-covariance ``pxz``.
 
     Skips the update (flagging divergence) when ``s`` is not positive definite or the
-    result is not finite; never returns NaN.
+    result is not finite or cannot be factored (:func:`factorable`); never returns NaN.
     """
     try:
         ls = np.linalg.cholesky(0.5 * (s + s.T))
@@ -267,19 +267,30 @@ class UKF(_GaussianFilter):
 
     def sigma_points(self, belief: GaussianBelief) -> FloatArray:
         """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns (NaN
-        where the covariance cannot be factored: the step then keeps its belief and flags
-        divergence, as for any non-finite prediction)."""
+        where the covariance cannot be factored; the filter's steps then keep the belief and
+        flag divergence)."""
         pd = factorable(belief.cov)
         if pd is None:
             return np.full((2 * belief.mean.size + 1, belief.mean.size), np.nan)
         d = self._w[2] * pd[1].T
         return np.concatenate([belief.mean[None], belief.mean + d, belief.mean - d])
 
+    def _sigma_batch(self, beliefs: Sequence[GaussianBelief]) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Sigma points ``(B, 2n + 1, n)`` of ``beliefs`` for one model call, and which beliefs
+        have none (a covariance that cannot be factored): theirs are replaced by copies of
+        the mean, so that no model is asked about NaN (the GPs refuse it) and the rest of
+        the batch goes on."""
+        x = np.stack([self.sigma_points(b) for b in beliefs])
+        bad = ~np.isfinite(x).all(axis=(1, 2))
+        for i in np.flatnonzero(bad):
+            x[i] = np.nan_to_num(beliefs[i].mean)
+        return x, bad
+
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
         """:meth:`predict` for ``B`` beliefs (``u: (B, k)``): every sigma point of every
         belief through the model in one call, then each belief's moments."""
         wm, wc, _ = self._w
-        x = np.stack([self.sigma_points(b) for b in beliefs])  # (B, 2n + 1, n)
+        x, bad = self._sigma_batch(beliefs)  # (B, 2n + 1, n)
         nb, ns, n = x.shape
         out = self.prediction.predict(
             x.reshape(nb * ns, n), np.repeat(u, ns, axis=0), var=self.noise == "sigma"
@@ -291,6 +302,9 @@ class UKF(_GaussianFilter):
             q = self.prediction.predict(x[:, 0], u).var
         results = []
         for i, b in enumerate(beliefs):  # small algebra per belief; the model call was shared
+            if bad[i]:  # no sigma points: a non-finite prediction, which the step flags
+                results.append(GaussianBelief(np.full(n, np.nan), np.full((n, n), np.nan), b.inflation))
+                continue
             mean = self._wrap.mean(xk[i], wm, self._wrap.state)
             dev = self._wrap.state_diff(xk[i] - mean)
             cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * b.inflation)
@@ -306,7 +320,7 @@ class UKF(_GaussianFilter):
         rows = np.flatnonzero(valid.any(axis=1))
         if rows.size == 0:
             return results
-        x = np.stack([self.sigma_points(priors[i]) for i in rows])  # (R, 2n + 1, n)
+        x, bad = self._sigma_batch([priors[i] for i in rows])  # (R, 2n + 1, n)
         nr, ns, n = x.shape
         out = self.observation.observe(x.reshape(nr * ns, n), var=self.noise == "sigma")
         zs_all = out.mean.reshape(nr, ns, -1)
@@ -316,6 +330,9 @@ class UKF(_GaussianFilter):
             r_all = self.observation.observe(x[:, 0]).var
         for j, i in enumerate(rows):
             idx = np.flatnonzero(valid[i])
+            if bad[j]:  # no sigma points: the update is refused, as for a non-factorable S
+                results[i] = priors[i], StepInfo(math.nan, len(idx), True)
+                continue
             results[i] = self._update_one(priors[i], x[j], zs_all[j][:, idx], r_all[j, idx], z[i], idx)
         return results
 
