@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from estimator_service.filters.adaptive import ADAPT_RATE
 
@@ -121,7 +121,7 @@ def add_calibration_options(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
-def calibration_options(args: argparse.Namespace) -> dict[str, object]:
+def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
     """``TrainSettings`` keyword arguments from :func:`add_calibration_options`' arguments."""
     refit = not args.calibration_condition_only
     return {"calibration_folds": args.calibration_folds, "calibration_refit": refit}

@@ -221,6 +221,9 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
     assert untimed(again) == untimed(res) and again["fig3"] == res["fig3"]
     with pytest.raises(ValueError, match=r"other settings \(points\)"):
         reproduce(tmp_path, replace(s, points=41), progress=False)
+    (tmp_path / "settings.json").unlink()  # models from a run that kept no record: not adopted
+    with pytest.raises(ValueError, match="recorded no settings"):
+        reproduce(tmp_path, s, progress=False)
 
 
 def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -65,6 +65,26 @@ def test_ode_complex_step_jacobian_matches_finite_differences(flight) -> None:
     h = 1e-6
     fd = np.stack([(ode.change(x + h * e, u) - ode.change(x - h * e, u)) / (2 * h) for e in np.eye(12)], -1)
     np.testing.assert_allclose(jac, fd, atol=1e-6)
+    # the mean that comes with the Jacobian (the complex step's real part) is the plain one
+    np.testing.assert_allclose(ode.predict(x, u, jac=True).mean, ode.change(x, u), rtol=0, atol=1e-12)
+
+
+def test_value_and_jacobian_of_a_mean_function_in_one_call() -> None:
+    from estimator_service.gp.enhanced import value_and_jacobian
+
+    calls = []
+
+    def f(q):
+        calls.append(len(q))
+        return np.stack([np.sin(q[:, 0]) * q[:, 1], q[:, 1] ** 2], axis=1)
+
+    x = np.array([[0.3, -1.2], [2.0, 0.5], [-0.7, 3.0]])
+    value, jac = value_and_jacobian(f, x)
+    assert calls == [3 * (2 * 2 + 1)]  # one batched call
+    np.testing.assert_array_equal(value, f(x))
+    rows = [[np.cos(x[:, 0]) * x[:, 1], np.sin(x[:, 0])], [0 * x[:, 0], 2 * x[:, 1]]]
+    exact = np.stack(rows).transpose(2, 0, 1)  # (M, P, d)
+    np.testing.assert_allclose(jac, exact, atol=1e-8)
 
 
 def test_camera_model_fit_recovers_envelope_axes(flight) -> None:

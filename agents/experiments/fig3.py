@@ -68,7 +68,9 @@ def data_sparsity(
     """Run both curves; ``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}``.
 
     ``cache``: a folder keeping each run's scores (``<curve>_<size>_<repeat>.json``); runs
-    already there are not trained again, so an interrupted experiment resumes."""
+    already there are not trained again, so an interrupted experiment resumes. The caller
+    keeps one cache per set of flights, settings and seed (``reproduce`` checks its folder's
+    settings)."""
     seg = round(track_seconds / test.dt)
     jobs = [("points", n, "gp") for n in points] + [("pseudo", m, "sparse") for m in pseudo]
     out: dict[str, dict[str, dict[str, list[float]]]] = {"points": {}, "pseudo": {}}

@@ -88,9 +88,11 @@ def _exact_table(res: dict) -> list[str]:
 
 
 def _fold_models(settings: dict) -> str:
-    """How the calibration folds' models were made (older results have no setting: refitted)."""
-    n = settings.get("calibration_folds", 4)
-    if settings.get("calibration_refit", True):
+    """How the calibration folds' models were made (results older than the setting do not say)."""
+    if "calibration_refit" not in settings:
+        return "the models are fitted again without the block (fold settings not recorded)"
+    n = settings["calibration_folds"]
+    if settings["calibration_refit"]:
         return f"the models are fitted again without the block ({n} folds)"
     return (
         f"the final models are conditioned on the data without the block, keeping their "
@@ -327,6 +329,12 @@ def _why(failed: list[str]) -> list[str]:
     return ["### Where our numbers differ, and why", "", caveat, "", *[f"- {t}" for t in notes], ""]
 
 
+def _took(res: dict) -> str:
+    if "wall_s" not in res:
+        return ""
+    return f" The run took {res['wall_s'] / 60:.1f} minutes (when resumed: its last part)."
+
+
 def write_report(out: Path, res: dict) -> Path:
     s = res["settings"]
     folders = sorted(out.glob("models_fold*"), key=lambda p: int(p.name.removeprefix("models_fold")))
@@ -340,8 +348,7 @@ def write_report(out: Path, res: dict) -> Path:
         f"{s['minutes']:.0f} minutes of scripted flight, {s['folds']}-fold cross-validation over contiguous "
         f"blocks, {s['points']} GP training points, {s['pseudo']} pseudo-inputs, PF with {s['particles']} "
         f"particles (first {s.get('pf_seconds', s['track_seconds']):.0f} s of each segment), tracking "
-        f"segments of {s['track_seconds']:.0f} s. Raw numbers: `results.json`."
-        + (f" The whole run took {res['wall_s'] / 60:.1f} minutes." if "wall_s" in res else ""),
+        f"segments of {s['track_seconds']:.0f} s. Raw numbers: `results.json`." + _took(res),
         "",
     ]
     world = s.get("reality", "clean (before reality presets)")

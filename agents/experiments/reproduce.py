@@ -250,9 +250,11 @@ def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]
 def resume_check(out: Path, settings: dict) -> None:
     """Record an experiment's ``settings`` in ``out/settings.json``; a folder that holds a run
     with other settings is refused, naming them (its models would be mixed into this run's
-    tables)."""
+    tables), and so is one with models but no record (a run older than the record)."""
     path = out / "settings.json"
     mine = json.loads(json.dumps(settings))  # tuples as lists, as read back
+    if not path.exists() and any(out.glob("models_*")):
+        raise ValueError(f"out: {out} holds models from a run that recorded no settings; use a new folder")
     if path.exists():
         theirs = json.loads(path.read_text())
         if theirs != mine:
