@@ -241,6 +241,7 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.Monkey
         tmp_path / "gap_sweep.md"
     ).read_text()
     monkeypatch.setattr(gap_module, "train_models", _no_training)  # resumes: the same table
+    monkeypatch.setattr(gap_module, "tracking", _no_training)
     assert gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False) == res
     with pytest.raises(ValueError, match=r"other settings \(strengths\)"):
         gap_sweep(tmp_path, s, strengths=(0.0, 2.0), progress=False)

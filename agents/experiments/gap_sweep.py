@@ -15,7 +15,15 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from agents.experiments.report import improvement
-from agents.experiments.reproduce import ReproduceSettings, resume_check, split_folds, tracking, trained
+from agents.experiments.reproduce import (
+    ReproduceSettings,
+    fold_scores_path,
+    kept,
+    resume_check,
+    split_folds,
+    tracking,
+    trained,
+)
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
@@ -33,8 +41,8 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
               progress: bool = True) -> dict:  # fmt: skip
     """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``.
 
-    Resumes like :func:`~agents.experiments.reproduce.reproduce`: complete fold models from an
-    earlier run with the same settings are kept."""
+    Resumes like :func:`~agents.experiments.reproduce.reproduce`: complete fold models and
+    their scores from an earlier run with the same settings are kept."""
     resume_check(out, {**asdict(s), "strengths": list(strengths)})
     settings = s.train_settings()
     bar = ProgressBar("gap sweep", len(strengths) * s.folds, unit="fold", enabled=progress)
@@ -47,9 +55,10 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
             folder = out / f"models_s{strength:g}_fold{i}"
             if not trained(folder):
                 train_models([train], folder, kinds=KINDS, settings=settings, seed=s.seed + i)
-            for filt in FILTERS:
-                for kind in KINDS:
-                    track.setdefault(f"{filt}/{kind}", []).append(tracking(folder, test, world, filt, kind))
+            scores = kept(fold_scores_path(folder), lambda folder=folder, test=test, world=world: {
+                f"{f}/{k}": tracking(folder, test, world, f, k) for f in FILTERS for k in KINDS})  # fmt: skip
+            for key, v in scores.items():
+                track.setdefault(key, []).append(v)
             bar.advance()
         tr = {k: mean_sd(v) for k, v in track.items()}
         table[f"{strength:g}"] = {

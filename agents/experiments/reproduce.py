@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -41,7 +42,15 @@ from estimator_service.tracking import (
 )
 from estimator_service.training import TrainSettings, prediction_data, train_models
 
-__all__ = ["ReproduceSettings", "reproduce", "resume_check", "split_folds", "trained"]
+__all__ = [
+    "ReproduceSettings",
+    "fold_scores_path",
+    "kept",
+    "reproduce",
+    "resume_check",
+    "split_folds",
+    "trained",
+]
 
 
 @dataclass(frozen=True)
@@ -270,23 +279,31 @@ def trained(folder: Path) -> bool:
     return (folder / MANIFEST_FILE).exists()
 
 
-def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: list[str], tick) -> dict:
-    """One fold's one-step errors and tracking scores, kept in ``fold_scores/<folder>.json``
-    beside the models so that a resumed run does not track the fold again (minutes at paper
-    size)."""
-    done = folder.parent / "fold_scores" / f"{folder.name}.json"
-    if done.exists():
-        for _ in range(len(s.filters) * len(s.kinds)):
-            tick()
-        return json.loads(done.read_text())
-    res: dict = {"table5": {k: one_step_errors(folder, test, k) for k in one_step}, "tracking": {}}
-    for filt in s.filters:
-        for kind in s.kinds:
-            res["tracking"][f"{filt}/{kind}"] = tracking(folder, test, s, filt, kind)
-            tick()
-    done.parent.mkdir(exist_ok=True)
-    atomic_write_text(done, json.dumps(res))
+def kept(path: Path, compute: Callable[[], dict]) -> dict:
+    """``compute()``, kept as JSON at ``path`` (written atomically): a resumed run reads it
+    back instead of computing again."""
+    if path.exists():
+        return json.loads(path.read_text())
+    res = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(res))
     return res
+
+
+def fold_scores_path(folder: Path) -> Path:
+    """Where a fold's scores are kept: ``fold_scores/<folder name>.json`` beside the models."""
+    return folder.parent / "fold_scores" / f"{folder.name}.json"
+
+
+def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: list[str]) -> dict:
+    """One fold's one-step errors and tracking scores, kept (:func:`kept`) so that a resumed
+    run does not track the fold again (minutes at paper size)."""
+
+    def compute() -> dict:
+        track = {f"{f}/{k}": tracking(folder, test, s, f, k) for f in s.filters for k in s.kinds}
+        return {"table5": {k: one_step_errors(folder, test, k) for k in one_step}, "tracking": track}
+
+    return kept(fold_scores_path(folder), compute)
 
 
 def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
@@ -302,14 +319,14 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
     track: dict[tuple[str, str], list] = {}
     settings = s.train_settings()
-    total = len(folds) * (1 + len(s.filters) * len(s.kinds))
-    bar = ProgressBar("reproduce", total, unit="run", enabled=progress)
+    bar = ProgressBar("reproduce", 2 * len(folds), unit="step", enabled=progress)  # models, scores
     for i, (train, test) in enumerate(folds):
         folder = out / f"models_fold{i}"
         if not trained(folder):  # complete from an earlier run in this folder
             train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
         bar.advance()
-        scores = _fold_scores(folder, test, s, [k for k in table5 if k in s.kinds], bar.advance)
+        scores = _fold_scores(folder, test, s, [k for k in table5 if k in s.kinds])
+        bar.advance()
         for kind, v in scores["table5"].items():
             table5[kind].append(v)
         for key, v in scores["tracking"].items():
