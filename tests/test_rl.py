@@ -341,7 +341,7 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
         == 0
     )
     agent = tmp_path / "agents" / "hover-state-0" / "model.zip"
-    tiny = TrainSettings(n_points=40, calibration_folds=2, calibration_refit=False)  # refit: test_calibration
+    tiny = TrainSettings(n_points=40, calibration_seconds=0.0)  # no calibration: test_calibration's subject
     loop = agent_data_loop(
         tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, settings=tiny
     )
