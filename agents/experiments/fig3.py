@@ -10,7 +10,6 @@ log-likelihood of the truth and the aggregate RMS.
 
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 from collections.abc import Callable, Sequence
@@ -19,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.experiments.resume import kept
 from estimator_service.factory import build_filter
-from estimator_service.files import atomic_write_text
 from estimator_service.flight import Flight
 from estimator_service.tracking import aggregate_rms, mean_sd, segments, track_flight
 from estimator_service.training import TrainSettings, train_models
@@ -78,16 +77,14 @@ def data_sparsity(
         runs = []
         for r in range(repeats):
             s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
-            done = None if cache is None else cache / f"{curve}_{size}_{r}.json"
-            if done is not None and done.exists():
-                runs.append(json.loads(done.read_text()))
-            else:
+            seed_r = seed + 1000 * r + size
+
+            def run(s: TrainSettings = s, kind: str = kind, seed_r: int = seed_r) -> dict:
                 with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:
-                    train_models([train], tmp, kinds=[kind], settings=s, seed=seed + 1000 * r + size)
-                    runs.append(_track(Path(tmp), kind, test, seg))
-                if done is not None:
-                    done.parent.mkdir(parents=True, exist_ok=True)
-                    atomic_write_text(done, json.dumps(runs[-1]))
+                    train_models([train], tmp, kinds=[kind], settings=s, seed=seed_r)
+                    return _track(Path(tmp), kind, test, seg)
+
+            runs.append(run() if cache is None else kept(cache / f"{curve}_{size}_{r}.json", run))
             if tick:
                 tick()
         out[curve][str(size)] = {f: mean_sd([x[f] for x in runs]) for f in FILTERS}

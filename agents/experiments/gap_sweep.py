@@ -15,15 +15,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from agents.experiments.report import improvement
-from agents.experiments.reproduce import (
-    ReproduceSettings,
-    fold_scores_path,
-    kept,
-    resume_check,
-    split_folds,
-    tracking,
-    trained,
-)
+from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
+from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.experiments.landmark import table10
+from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
 from estimator_service.files import atomic_write_text
@@ -29,7 +29,6 @@ from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.models.base import PredictionModel
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 from estimator_service.progress import ProgressBar
-from estimator_service.store import MANIFEST_FILE
 from estimator_service.tracking import (
     TrackResult,
     aggregate_rms,
@@ -42,15 +41,7 @@ from estimator_service.tracking import (
 )
 from estimator_service.training import TrainSettings, prediction_data, train_models
 
-__all__ = [
-    "ReproduceSettings",
-    "fold_scores_path",
-    "kept",
-    "reproduce",
-    "resume_check",
-    "split_folds",
-    "trained",
-]
+__all__ = ["ReproduceSettings", "reproduce", "split_folds"]
 
 
 @dataclass(frozen=True)
@@ -256,45 +247,6 @@ def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]
     return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
 
 
-def resume_check(out: Path, settings: dict) -> None:
-    """Record an experiment's ``settings`` in ``out/settings.json``; a folder that holds a run
-    with other settings is refused, naming them (its models would be mixed into this run's
-    tables), and so is one with models but no record (a run older than the record)."""
-    path = out / "settings.json"
-    mine = json.loads(json.dumps(settings))  # tuples as lists, as read back
-    if not path.exists() and any(out.glob("models_*")):
-        raise ValueError(f"out: {out} holds models from a run that recorded no settings; use a new folder")
-    if path.exists():
-        theirs = json.loads(path.read_text())
-        if theirs != mine:
-            diff = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
-            msg = f"out: {out} holds a run with other settings ({', '.join(diff)}); use a new folder"
-            raise ValueError(msg)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(mine, indent=2))
-
-
-def trained(folder: Path) -> bool:
-    """Whether ``folder`` holds complete models (``train_models`` writes the manifest last)."""
-    return (folder / MANIFEST_FILE).exists()
-
-
-def kept(path: Path, compute: Callable[[], dict]) -> dict:
-    """``compute()``, kept as JSON at ``path`` (written atomically): a resumed run reads it
-    back instead of computing again."""
-    if path.exists():
-        return json.loads(path.read_text())
-    res = compute()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(res))
-    return res
-
-
-def fold_scores_path(folder: Path) -> Path:
-    """Where a fold's scores are kept: ``fold_scores/<folder name>.json`` beside the models."""
-    return folder.parent / "fold_scores" / f"{folder.name}.json"
-
-
 def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: list[str]) -> dict:
     """One fold's one-step errors and tracking scores, kept (:func:`kept`) so that a resumed
     run does not track the fold again (minutes at paper size)."""
@@ -317,7 +269,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
     folds = split_folds(flight, s.folds)
     table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
-    track: dict[tuple[str, str], list] = {}
+    track: dict[str, list] = {}  # "<filter>/<kind>": per-fold scores
     settings = s.train_settings()
     bar = ProgressBar("reproduce", 2 * len(folds), unit="step", enabled=progress)  # models, scores
     for i, (train, test) in enumerate(folds):
@@ -330,13 +282,13 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
         for kind, v in scores["table5"].items():
             table5[kind].append(v)
         for key, v in scores["tracking"].items():
-            track.setdefault(tuple(key.split("/")), []).append(v)
+            track.setdefault(key, []).append(v)
     bar.close()
     results = {
         "fig3": _fig3(folds[0], s, settings, out, progress),
         "settings": asdict(s),
         "table5_6": {k: mean_sd(v) for k, v in table5.items() if v},
-        "tracking": {f"{f}/{k}": mean_sd(v) for (f, k), v in track.items()},
+        "tracking": {k: mean_sd(v) for k, v in track.items()},
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
     }
     t10 = table10(s.seed, particles=s.particles) if s.landmark else {}
