@@ -82,7 +82,7 @@ def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackRe
             r = track_flight(filt, block.flight, rows=block.rows)
             if not (np.isfinite(r.cov).all() and np.isfinite(r.mean).all()):
                 return None
-            np.linalg.cholesky(0.5 * (r.cov + r.cov.transpose(0, 2, 1)))  # every step's belief factorable
+            np.linalg.cholesky(r.cov)  # every step's belief factorable
     except np.linalg.LinAlgError:  # other errors are bugs, not a covariance blown up
         return None
     return r

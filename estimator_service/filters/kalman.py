@@ -267,23 +267,27 @@ class UKF(_GaussianFilter):
 
     def sigma_points(self, belief: GaussianBelief) -> FloatArray:
         """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns (NaN
-        where the covariance cannot be factored; the filter's steps then keep the belief and
-        flag divergence)."""
+        where the covariance cannot be factored)."""
         pd = factorable(belief.cov)
-        if pd is None:
-            return np.full((2 * belief.mean.size + 1, belief.mean.size), np.nan)
-        d = self._w[2] * pd[1].T
-        return np.concatenate([belief.mean[None], belief.mean + d, belief.mean - d])
+        return self._points(belief.mean, None if pd is None else pd[1])
+
+    def _points(self, mean: FloatArray, l: FloatArray | None) -> FloatArray:
+        if l is None:
+            return np.full((2 * mean.size + 1, mean.size), np.nan)
+        d = self._w[2] * l.T
+        return np.concatenate([mean[None], mean + d, mean - d])
 
     def _sigma_batch(self, beliefs: Sequence[GaussianBelief]) -> tuple[FloatArray, NDArray[np.bool_]]:
         """Sigma points ``(B, 2n + 1, n)`` of ``beliefs`` for one model call, and which beliefs
-        have none (a covariance that cannot be factored): theirs are replaced by copies of
-        the mean, so that no model is asked about NaN (the GPs refuse it) and the rest of
-        the batch goes on."""
-        x = np.stack([self.sigma_points(b) for b in beliefs])
-        bad = ~np.isfinite(x).all(axis=(1, 2))
-        for i in np.flatnonzero(bad):
-            x[i] = np.nan_to_num(beliefs[i].mean)
+        have none (a covariance that cannot be factored): for those the model sees only their
+        mean (no model is asked about NaN, the GPs refuse it) and the rest of the batch goes
+        on; the callers flag them."""
+        pds = [factorable(b.cov) for b in beliefs]
+        bad = np.array([pd is None for pd in pds])
+        x = np.stack(
+            [self._points(b.mean, None if pd is None else pd[1]) for b, pd in zip(beliefs, pds, strict=True)]
+        )
+        x[bad] = np.nan_to_num(np.stack([b.mean for b in beliefs])[bad])[:, None, :]
         return x, bad
 
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:

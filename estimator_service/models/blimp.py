@@ -87,6 +87,13 @@ def _derivative(s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float
     ])  # fmt: skip
 
 
+def _change(nxt: FloatArray, x: FloatArray) -> FloatArray:
+    """The state change ``nxt - x (N, 12)`` with the angle changes wrapped."""
+    d = nxt - x
+    d[:, 3:6] = _wrap(d[:, 3:6])
+    return d
+
+
 def integrate(
     x: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float, float], dt: float, n_sub: int
 ) -> FloatArray:
@@ -131,10 +138,7 @@ class BlimpODE:
 
     def change(self, x: FloatArray, u: FloatArray) -> FloatArray:
         """Mean state change ``(M, 12)`` (angles wrapped) over one step."""
-        nxt = integrate(x, u, self.params, (self.mass, self.tail_arm), self.dt, self.substeps)
-        d = nxt - x
-        d[:, 3:6] = _wrap(d[:, 3:6])
-        return d
+        return _change(integrate(x, u, self.params, (self.mass, self.tail_arm), self.dt, self.substeps), x)
 
     def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         uu = controls_for(u, x.shape[0])
@@ -156,9 +160,7 @@ class BlimpODE:
         p = self.params.astype(np.complex128)
         nxt = integrate(xc.reshape(m * n, n), uc, p, (self.mass, self.tail_arm), self.dt, self.substeps)
         nxt = nxt.reshape(m, n, n)  # [row, input j, output i]
-        mean = nxt[:, 0].real - x
-        mean[:, 3:6] = _wrap(mean[:, 3:6])
-        return mean, nxt.imag.transpose(0, 2, 1) / h - np.eye(n)
+        return _change(nxt[:, 0].real, x), nxt.imag.transpose(0, 2, 1) / h - np.eye(n)
 
 
 def fit_blimp_ode(
