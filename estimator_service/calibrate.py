@@ -16,6 +16,7 @@ from the flight's :class:`~estimator_service.system.System`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +35,13 @@ from estimator_service.models.calibration import read_observation_scales, read_p
 
 __all__ = [
     "NOISE_DETAILS",
+    "NoiseCalibration",
     "calibrate_all",
     "calibrate_noise",
     "calibrate_observation",
     "calibrate_process",
     "calibration_rows",
+    "geometric_mean",
     "noise_from_blocks",
     "without_frames",
     "write_calibration",
@@ -121,6 +124,28 @@ def calibrate_process(
     return chosen
 
 
+@dataclass(frozen=True)
+class NoiseCalibration:
+    """One kind's noise calibration on held-out rows: the matched process scales
+    ``matched (n,)``, the observation scales ``observation (m,)`` (None: the models carry
+    none), both before the 3-sigma coverage ``factor``, and what was measured."""
+
+    matched: FloatArray
+    observation: FloatArray | None
+    factor: float
+    details: dict
+
+    @property
+    def process(self) -> FloatArray:
+        """The process scales to apply ``(n,)``: matched, times the factor."""
+        return self.matched * self.factor
+
+    @property
+    def scaled_observation(self) -> FloatArray | None:
+        """The observation scales to apply ``(m,)``, times the factor."""
+        return None if self.observation is None else self.observation * self.factor
+
+
 def calibrate_noise(
     flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice,
     rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
@@ -135,32 +160,44 @@ def calibrate_noise(
     Stored as ``noise_scale`` (the geometric mean) times ``process_noise_scale``; returns
     their product per kind ``(n,)``.
     """
+    return {k: v.process for k, v in _noise(flight, folder, kinds, rows, rounds, max_step).items()}
+
+
+def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, rounds: int = MATCH_ROUNDS,
+           max_step: float = MATCH_STEP) -> dict[str, NoiseCalibration]:  # fmt: skip
+    """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`."""
     from estimator_service.factory import apply_calibration, load_models
 
-    chosen, obs, details = {}, {}, {}
+    res = {}
     for kind in kinds:
         raw = load_models(folder, kind, calibrated=False, check=False)
         pred, cam = apply_calibration(folder, kind, *raw, process=False)  # observation scales only
         start = read_process_scales(folder).get(kind, np.ones(pred.state_dim))
         scales = read_observation_scales(folder).get(kind)
-        chosen[kind], obs[kind], details[kind] = noise_from_blocks(
-            [Block(flight, rows, pred, cam)], start, scales, rounds, max_step
-        )
-    write_calibration(folder, chosen, obs, details, calibration_rows=[rows.start, rows.stop])
-    return chosen
+        res[kind] = noise_from_blocks([Block(flight, rows, pred, cam)], start, scales, rounds, max_step)
+    write_calibration(
+        folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
+        {k: v.details for k, v in res.items()}, calibration_rows=[rows.start, rows.stop],
+    )  # fmt: skip
+    return res
 
 
 def noise_from_blocks(
     blocks: Sequence[Block], start: FloatArray, obs_scale: FloatArray | None,
     rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
-) -> tuple[FloatArray, FloatArray | None, dict]:  # fmt: skip
-    """Matched process scales ``(n,)`` times the covering factor, the observation scales
-    ``(m,)`` (those the blocks' models carry, or None) times it, and what was measured."""
+) -> NoiseCalibration:  # fmt: skip
+    """Process scales matched from ``start (n,)`` and the covering factor on the blocks,
+    with the observation scales ``obs_scale (m,)`` the blocks' models carry (or None)."""
     scale, history = match_scales(blocks, start, rounds=rounds, max_step=max_step)
     curve = coverage_curve(blocks, scale)
     factor = covering_factor(curve, len(scale))
     details = {"matching": history, "coverage": curve, "coverage_factor": factor}
-    return scale * factor, None if obs_scale is None else obs_scale * factor, details
+    return NoiseCalibration(scale, obs_scale, factor, details)
+
+
+def geometric_mean(values: object, axis: int | None = None) -> FloatArray:
+    """``exp(mean(log(values)))`` over ``axis`` (all entries when None)."""
+    return np.exp(np.mean(np.log(values), axis=axis))
 
 
 def write_calibration(
@@ -171,17 +208,20 @@ def write_calibration(
     scales), observation scales and what each kind's calibration measured."""
     from estimator_service.models.calibration import write_noise_scales
 
-    mean = {k: float(np.exp(np.mean(np.log(v)))) for k, v in process.items()}
+    mean = {k: float(geometric_mean(v)) for k, v in process.items()}
     write_noise_scales(
         folder, mean, observation={k: v for k, v in observation.items() if v is not None},
         process={k: v / mean[k] for k, v in process.items()}, **{NOISE_DETAILS: details}, **extra,
     )  # fmt: skip
 
 
-def calibrate_all(flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice) -> None:
+def calibrate_all(
+    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice
+) -> dict[str, NoiseCalibration]:
     """Observation scales, one-step process scales, then their per-output match to the EKF's
     errors and the 3-sigma coverage factor, all on ``rows`` of ``flight`` (which the models
-    in ``folder`` must not have seen)."""
+    in ``folder`` must not have seen); written to ``folder/calibration.json`` and returned
+    per kind."""
     calibrate_observation(flight, folder, kinds, rows=rows)
     calibrate_process(flight, folder, kinds, rows=rows)
-    calibrate_noise(flight, folder, kinds, rows=rows)
+    return _noise(flight, folder, kinds, rows)

@@ -24,14 +24,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.calibrate import NOISE_DETAILS, calibrate_all, calibration_rows, write_calibration
+from estimator_service.calibrate import calibrate_all, calibration_rows, geometric_mean, write_calibration
 from estimator_service.flight import Flight
-from estimator_service.models.calibration import (
-    read_details,
-    read_noise_scales,
-    read_observation_scales,
-    read_process_scales,
-)
+from estimator_service.models.calibration import read_details
 from estimator_service.store import seal
 from estimator_service.system import System
 
@@ -60,12 +55,16 @@ class Fold:
         return out
 
 
+def _check_folds(folds: object) -> None:
+    if not (isinstance(folds, int) and 1 <= folds <= MAX_FOLDS):
+        raise ValueError(f"calibration_folds must be an integer in [1, {MAX_FOLDS}], got {folds!r}")
+
+
 def calibration_blocks(flight: Flight, seconds: float, folds: int) -> list[slice]:
     """``folds`` blocks of ``seconds`` of ``flight`` (each at most ``1 / max(folds, 4)`` of
     it), spread evenly from its start to its end (1: the start; 2: the start and the end);
     none for ``seconds`` 0."""
-    if not (isinstance(folds, int) and 1 <= folds <= MAX_FOLDS):
-        raise ValueError(f"calibration_folds must be an integer in [1, {MAX_FOLDS}], got {folds!r}")
+    _check_folds(folds)
     n = min(calibration_rows(flight, seconds).stop, len(flight) // max(folds, 4))
     if n < 2:
         return []
@@ -81,7 +80,7 @@ def calibration_folds(flights: Sequence[Flight], seconds: float, folds: int) -> 
     than on the blocks that calibrated them). None for ``seconds`` 0."""
     if len(flights) == 1 or seconds <= 0:
         return [Fold(0, b) for b in calibration_blocks(flights[0], seconds, folds)] if flights else []
-    calibration_blocks(flights[0], seconds, folds)  # the same checks of ``folds``
+    _check_folds(folds)
     chosen = [(i, round(seconds / f.dt)) for i, f in enumerate(flights[:folds])]
     return [Fold(i, slice(0, min(n, len(flights[i])))) for i, n in chosen if min(n, len(flights[i])) >= 2]
 
@@ -115,22 +114,17 @@ def cross_fit(
         try:
             fit(fold, f.rest(flights))
             seal(fold, system)
-            calibrate_all(flights[f.flight], fold, kinds, rows=f.rows)
-            o, p, g = read_observation_scales(fold), read_process_scales(fold), read_noise_scales(fold)
+            res = calibrate_all(flights[f.flight], fold, kinds, rows=f.rows)
             details.append(read_details(fold))
-            for k in kinds:
-                factors[k].append(details[-1][NOISE_DETAILS][k]["coverage_factor"])
-                matched[k].append(g[k] * p[k] / factors[k][-1])
-                obs[k].append(o[k] / factors[k][-1])
+            for k, r in res.items():
+                factors[k].append(r.factor)
+                matched[k].append(r.matched)
+                obs[k].append(r.observation)
         finally:
             shutil.rmtree(fold)
-    process = {k: _geometric_mean(v) * max(factors[k]) for k, v in matched.items()}
-    observation = {k: _geometric_mean(v) * max(factors[k]) for k, v in obs.items()}
+    process = {k: geometric_mean(v, axis=0) * max(factors[k]) for k, v in matched.items()}
+    observation = {k: geometric_mean(v, axis=0) * max(factors[k]) for k, v in obs.items()}
     chosen = {k: {"coverage_factor": max(v)} for k, v in factors.items()}
     write_calibration(out, process, observation, chosen, fold_details=details,
                       folds=[[f.flight, f.rows.start, f.rows.stop] for f in folds])  # fmt: skip
     return process
-
-
-def _geometric_mean(values: list[FloatArray]) -> FloatArray:
-    return np.exp(np.mean(np.log(values), axis=0))
