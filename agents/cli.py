@@ -103,7 +103,7 @@ def _reproduce(args: argparse.Namespace) -> int:
     s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
     s = replace(s, seed=args.seed, reality=args.reality, reality_strength=args.reality_strength)
     s = replace(s, **calibration_options(args))
-    reproduce(args.out, s, progress=not args.quiet)
+    reproduce(args.out, s, progress=not args.quiet, jobs=args.jobs)
     print(f"wrote {args.out / 'report.md'}")
     return 0
 
@@ -116,7 +116,7 @@ def _gap_sweep(args: argparse.Namespace) -> int:
 
     s = ReproduceSettings.quick() if args.quick else ReproduceSettings()
     s = replace(s, seed=args.seed, **calibration_options(args))
-    gap_sweep(args.out, s, tuple(args.strengths), progress=not args.quiet)
+    gap_sweep(args.out, s, tuple(args.strengths), progress=not args.quiet, jobs=args.jobs)
     print(f"wrote {args.out / 'gap_sweep.md'}")
     return 0
 
@@ -136,6 +136,17 @@ def add_world_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--reality-strength", type=checked_float(0.0, MAX_STRENGTH), default=None,
         help="scale on every unmodelled effect (0: the clean world; default: the preset's)",
+    )  # fmt: skip
+
+
+def add_jobs_option(p: argparse.ArgumentParser) -> None:
+    """``--jobs``: worker processes for an experiment's independent units."""
+    from agents.experiments.parallel import MAX_JOBS
+
+    p.add_argument(
+        "--jobs", type=checked_int(1, MAX_JOBS), default=1,
+        help="worker processes for the independent folds and runs (each with one BLAS thread; "
+        "up to one per core); the results do not depend on it",
     )  # fmt: skip
 
 
@@ -228,6 +239,7 @@ def build_parser() -> Parser:
     r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
     add_world_options(r)
     add_calibration_options(r)
+    add_jobs_option(r)
     add_quiet(r)
     r.set_defaults(func=_reproduce)
 
@@ -243,6 +255,7 @@ def build_parser() -> Parser:
         help="reality strengths to compare",
     )  # fmt: skip
     add_calibration_options(g)
+    add_jobs_option(g)
     add_quiet(g)
     g.set_defaults(func=_gap_sweep)
     return p

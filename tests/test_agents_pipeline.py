@@ -193,7 +193,7 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
         calibration_folds=2,
         calibration_refit=False,  # the refitted folds are tested in test_calibration.py
     )
-    res = reproduce(tmp_path, s, progress=False)
+    res = reproduce(tmp_path, s, progress=False, jobs=2)  # units in worker processes
     report = (tmp_path / "report.md").read_text()
     for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 3", "Fig. 4", "orderings"):
         assert heading in report
@@ -233,7 +233,7 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.Monkey
 
     s = ReproduceSettings(minutes=1.0, folds=2, points=30, pseudo=5, max_iter=3, track_seconds=20,
                           calibration_folds=2, calibration_refit=False)  # fmt: skip
-    res = gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False)
+    res = gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False, jobs=2)
     assert set(res["improvement_pct"]) == {"0", "1"}
     assert set(res["improvement_pct"]["1"]) == {"ekf/gp", "ekf/egp", "ukf/gp", "ukf/egp"}
     assert all(np.isfinite(v) for row in res["improvement_pct"].values() for v in row.values())

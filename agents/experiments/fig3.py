@@ -13,18 +13,27 @@ from __future__ import annotations
 import math
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from agents.experiments.parallel import run_all
 from agents.experiments.resume import kept
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
 from estimator_service.tracking import aggregate_rms, mean_sd, segments, track_flight
 from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["data_sparsity", "describe", "plot_data_sparsity", "size_levels"]
+__all__ = [
+    "Fig3Run",
+    "data_sparsity",
+    "describe",
+    "fig3_runs",
+    "fig3_table",
+    "plot_data_sparsity",
+    "size_levels",
+]
 
 FILTERS = ("ekf", "ukf")
 MEASURES = ("outside_3sigma", "failed", "mll", "aggregate_rms")
@@ -51,44 +60,77 @@ def _track(folder: Path, kind: str, test: Flight, seg: int) -> dict[str, dict[st
     return res
 
 
-def data_sparsity(
-    train: Flight,
-    test: Flight,
-    settings: TrainSettings,
-    *,
-    points: Sequence[int],
-    pseudo: Sequence[int],
-    repeats: int,
-    track_seconds: float,
-    seed: int = 0,
-    tick: Callable[[], None] | None = None,
-    cache: Path | None = None,
-) -> dict[str, dict[str, dict[str, list[float]]]]:
-    """Run both curves; ``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}``.
+@dataclass(frozen=True)
+class Fig3Run:
+    """One point of a curve: ``kind`` models trained with ``settings`` (``seed``) on
+    ``train``, GP-EKF and GP-UKF tracking ``test`` in segments of ``seg`` rows; scores kept
+    at ``cache`` (None: not kept). Calling it returns ``{filter: {measure: value}}``."""
+
+    curve: str
+    size: int
+    repeat: int
+    kind: str
+    settings: TrainSettings
+    seed: int
+    train: Flight
+    test: Flight
+    seg: int
+    cache: Path | None
+
+    def __call__(self) -> dict[str, dict[str, float]]:
+        if self.cache is None:
+            return self._run()
+        return kept(self.cache / f"{self.curve}_{self.size}_{self.repeat}.json", self._run)
+
+    def _run(self) -> dict[str, dict[str, float]]:
+        with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:
+            train_models([self.train], tmp, kinds=[self.kind], settings=self.settings, seed=self.seed)
+            return _track(Path(tmp), self.kind, self.test, self.seg)
+
+
+def fig3_runs(
+    train: Flight, test: Flight, settings: TrainSettings, *, points: Sequence[int], pseudo: Sequence[int],
+    repeats: int, track_seconds: float, seed: int = 0, cache: Path | None = None,
+) -> list[Fig3Run]:  # fmt: skip
+    """Every run of both curves, the largest first (the longest, for a pool of workers).
 
     ``cache``: a folder keeping each run's scores (``<curve>_<size>_<repeat>.json``); runs
     already there are not trained again, so an interrupted experiment resumes. The caller
     keeps one cache per set of flights, settings and seed (``reproduce`` checks its folder's
     settings)."""
     seg = round(track_seconds / test.dt)
-    jobs = [("points", n, "gp") for n in points] + [("pseudo", m, "sparse") for m in pseudo]
-    out: dict[str, dict[str, dict[str, list[float]]]] = {"points": {}, "pseudo": {}}
-    for curve, size, kind in jobs:
-        runs = []
-        for r in range(repeats):
-            s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
-            seed_r = seed + 1000 * r + size
+    curves = [("points", n, "gp") for n in points] + [("pseudo", m, "sparse") for m in pseudo]
+    runs = []
+    for curve, size, kind in curves:
+        s = replace(settings, **{"n_points" if curve == "points" else "n_pseudo": size})
+        runs += [Fig3Run(curve, size, r, kind, s, seed + 1000 * r + size, train, test, seg, cache)
+                 for r in range(repeats)]  # fmt: skip
+    return sorted(runs, key=lambda run: -run.size if run.curve == "points" else 0)
 
-            def run(s: TrainSettings = s, kind: str = kind, seed_r: int = seed_r) -> dict:
-                with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:
-                    train_models([train], tmp, kinds=[kind], settings=s, seed=seed_r)
-                    return _track(Path(tmp), kind, test, seg)
 
-            runs.append(run() if cache is None else kept(cache / f"{curve}_{size}_{r}.json", run))
-            if tick:
-                tick()
-        out[curve][str(size)] = {f: mean_sd([x[f] for x in runs]) for f in FILTERS}
+def fig3_table(
+    runs: Sequence[Fig3Run], results: Sequence[dict]
+) -> dict[str, dict[str, dict[str, dict[str, list[float]]]]]:
+    """``{"points"|"pseudo": {size: {filter: {measure: [mean, sd]}}}}`` over the repeats."""
+    by_point: dict[tuple[str, int], list[dict]] = {}
+    for run, res in zip(runs, results, strict=True):
+        by_point.setdefault((run.curve, run.size), []).append(res)
+    out: dict = {"points": {}, "pseudo": {}}
+    for (curve, size), res in sorted(by_point.items(), key=lambda kv: (kv[0][0], kv[0][1])):
+        out[curve][str(size)] = {f: mean_sd([x[f] for x in res]) for f in FILTERS}
     return out
+
+
+def data_sparsity(
+    train: Flight, test: Flight, settings: TrainSettings, *, points: Sequence[int], pseudo: Sequence[int],
+    repeats: int, track_seconds: float, seed: int = 0, tick: Callable[[], None] | None = None,
+    cache: Path | None = None, jobs: int = 1,
+) -> dict[str, dict[str, dict[str, dict[str, list[float]]]]]:  # fmt: skip
+    """Run both curves (:func:`fig3_runs`, in ``jobs`` processes) and tabulate them
+    (:func:`fig3_table`)."""
+    runs = fig3_runs(train, test, settings, points=points, pseudo=pseudo, repeats=repeats,
+                     track_seconds=track_seconds, seed=seed, cache=cache)  # fmt: skip
+    return fig3_table(runs, run_all(runs, jobs, tick))
 
 
 def plot_data_sparsity(res: dict, path: Path) -> Path:

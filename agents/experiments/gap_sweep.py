@@ -12,13 +12,16 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, replace
+from functools import partial
 from pathlib import Path
 
+from agents.experiments.parallel import check_jobs, run_all
 from agents.experiments.report import improvement
 from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text
+from estimator_service.flight import Flight
 from estimator_service.progress import ProgressBar
 from estimator_service.tracking import mean_sd
 from estimator_service.training import train_models
@@ -30,29 +33,40 @@ KINDS = ("param", "gp", "egp")
 FILTERS = ("ekf", "ukf")
 
 
+def sweep_unit(out: Path, strength: float, i: int, train: Flight, test: Flight, s: ReproduceSettings) -> dict:
+    """Fold ``i`` at ``strength``: its models (``out/models_s<strength>_fold<i>``, kept when
+    complete) and their tracking scores ``{"<filter>/<kind>": scores}``, kept."""
+    folder = out / f"models_s{strength:g}_fold{i}"
+    if not trained(folder):
+        train_models([train], folder, kinds=KINDS, settings=s.train_settings(), seed=s.seed + i)
+    world = replace(s, reality="lab", reality_strength=strength)
+    return kept(fold_scores_path(folder), lambda: {
+        f"{f}/{k}": tracking(folder, test, world, f, k) for f in FILTERS for k in KINDS})  # fmt: skip
+
+
 def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = STRENGTHS,
-              progress: bool = True) -> dict:  # fmt: skip
-    """Run the sweep into ``out``; returns ``{strength: {"<filter>/<kind>": improvement %}}``.
+              progress: bool = True, jobs: int = 1) -> dict:  # fmt: skip
+    """Run the sweep into ``out`` (its folds in ``jobs`` worker processes); returns
+    ``{strength: {"<filter>/<kind>": improvement %}}``.
 
     Resumes like :func:`~agents.experiments.reproduce.reproduce`: complete fold models and
     their scores from an earlier run with the same settings are kept."""
+    check_jobs(jobs)
     resume_check(out, {**asdict(s), "strengths": list(strengths)})
-    settings = s.train_settings()
-    bar = ProgressBar("gap sweep", len(strengths) * s.folds, unit="fold", enabled=progress)
-    table: dict[str, dict[str, float]] = {}
+    units = []
     for strength in strengths:
-        world = replace(s, reality="lab", reality_strength=strength)
-        flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=world.world)
+        world = replace(s, reality="lab", reality_strength=strength).world
+        flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=world)
+        units += [partial(sweep_unit, out, strength, i, train, test, s)
+                  for i, (train, test) in enumerate(split_folds(flight, s.folds))]  # fmt: skip
+    with ProgressBar("gap sweep", len(units), unit="fold", enabled=progress) as bar:
+        scores = run_all(units, jobs, bar.advance)
+    table: dict[str, dict[str, float]] = {}
+    for j, strength in enumerate(strengths):
         track: dict[str, list] = {}
-        for i, (train, test) in enumerate(split_folds(flight, s.folds)):
-            folder = out / f"models_s{strength:g}_fold{i}"
-            if not trained(folder):
-                train_models([train], folder, kinds=KINDS, settings=settings, seed=s.seed + i)
-            scores = kept(fold_scores_path(folder), lambda folder=folder, test=test, world=world: {
-                f"{f}/{k}": tracking(folder, test, world, f, k) for f in FILTERS for k in KINDS})  # fmt: skip
-            for key, v in scores.items():
+        for fold in scores[j * s.folds : (j + 1) * s.folds]:
+            for key, v in fold.items():
                 track.setdefault(key, []).append(v)
-            bar.advance()
         tr = {k: mean_sd(v) for k, v in track.items()}
         table[f"{strength:g}"] = {
             f"{f}/{k}": improvement(tr, f"{f}/{k}", f"{f}/param")
@@ -60,7 +74,6 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
             for k in KINDS
             if k != "param"
         }
-    bar.close()
     result = {"settings": asdict(s), "strengths": list(strengths), "improvement_pct": table}
     atomic_write_text(out / "gap_sweep.json", json.dumps(result, indent=2))
     atomic_write_text(out / "gap_sweep.md", "\n".join(describe(result)) + "\n")

@@ -15,11 +15,13 @@ import math
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from agents.experiments.landmark import table10
+from agents.experiments.parallel import check_jobs, run_all
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
@@ -165,15 +167,24 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
     return out
 
 
-def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
-    """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
-    reduced = out / "models_no_left_turns"
+NO_LEFT_TURNS = "models_no_left_turns"  # Fig. 4's models, beside the folds'
+
+
+def train_no_left_turns(out: Path, train: Flight, s: ReproduceSettings) -> None:
+    """Fig. 4's models: Param and GP without the training transitions whose tail fan pushes
+    left, into ``out/models_no_left_turns`` (kept when complete)."""
+    reduced = out / NO_LEFT_TURNS
     if not trained(reduced):
         no_left = lambda inp: inp[:, 14] > 0.3  # noqa: E731
         train_models(
             [train], reduced, kinds=["param", "gp"], settings=s.train_settings(), seed=s.seed, exclude=no_left
         )
-    return plot_fig4(folder_full, reduced, test, out / "fig4_left_turns.png")
+
+
+def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
+    """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
+    train_no_left_turns(out, train, s)
+    return plot_fig4(folder_full, out / NO_LEFT_TURNS, test, out / "fig4_left_turns.png")
 
 
 def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dict[str, float]:
@@ -247,9 +258,15 @@ def persistence(err: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]
     return float(np.sqrt(np.mean(e * e))), float(e.mean()), lag1
 
 
-def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: list[str]) -> dict:
-    """One fold's one-step errors and tracking scores, kept (:func:`kept`) so that a resumed
-    run does not track the fold again (minutes at paper size)."""
+def fold_unit(
+    out: Path, i: int, train: Flight, test: Flight, s: ReproduceSettings, one_step: list[str]
+) -> dict:
+    """Fold ``i``: its models (``out/models_fold<i>``, kept when complete), then its
+    one-step errors and tracking scores, kept (:func:`kept`) so that a resumed run does not
+    track the fold again (minutes at paper size)."""
+    folder = out / f"models_fold{i}"
+    if not trained(folder):  # complete from an earlier run in this folder
+        train_models([train], folder, kinds=s.kinds, settings=s.train_settings(), seed=s.seed + i)
 
     def compute() -> dict:
         track = {f"{f}/{k}": tracking(folder, test, s, f, k) for f in s.filters for k in s.kinds}
@@ -258,40 +275,43 @@ def _fold_scores(folder: Path, test: Flight, s: ReproduceSettings, one_step: lis
     return kept(fold_scores_path(folder), compute)
 
 
-def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
+def table10_unit(out: Path, s: ReproduceSettings) -> dict:
+    """Table 10 (the landmark robot), kept in ``out/table10.json``; empty without ``landmark``."""
+    if not s.landmark:
+        return {}
+    return kept(out / "table10.json", partial(table10, s.seed, particles=s.particles))
+
+
+def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int = 1) -> dict:
     """Run everything and write ``report.md`` and figures into ``out``.
 
-    Resumes: fold models already in ``out`` (``models_fold<i>``, complete ones only), their
-    scores (``fold_scores/``) and Fig. 3 runs already scored (``fig3_runs/``)
-    are kept, provided ``out`` was made with the same settings."""
+    The folds, Fig. 3's runs, Fig. 4's models and Table 10 are independent units
+    (:mod:`agents.experiments.parallel`), run in ``jobs`` worker processes. Resumes: fold
+    models already in ``out`` (``models_fold<i>``, complete ones only), their scores
+    (``fold_scores/``), Fig. 3 runs already scored (``fig3_runs/``) and Table 10 are kept,
+    provided ``out`` was made with the same settings."""
+    check_jobs(jobs)
     resume_check(out, asdict(s))
     t0 = time.perf_counter()
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
     folds = split_folds(flight, s.folds)
-    table5: dict[str, list] = {k: [] for k in ("param", "gp", "egp")}
-    track: dict[str, list] = {}  # "<filter>/<kind>": per-fold scores
-    settings = s.train_settings()
-    bar = ProgressBar("reproduce", 2 * len(folds), unit="step", enabled=progress)  # models, scores
-    for i, (train, test) in enumerate(folds):
-        folder = out / f"models_fold{i}"
-        if not trained(folder):  # complete from an earlier run in this folder
-            train_models([train], folder, kinds=s.kinds, settings=settings, seed=s.seed + i)
-        bar.advance()
-        scores = _fold_scores(folder, test, s, [k for k in table5 if k in s.kinds])
-        bar.advance()
-        for kind, v in scores["table5"].items():
-            table5[kind].append(v)
-        for key, v in scores["tracking"].items():
-            track.setdefault(key, []).append(v)
+    one_step = [k for k in ("param", "gp", "egp") if k in s.kinds]
+    units: list = [
+        partial(fold_unit, out, i, train, test, s, one_step) for i, (train, test) in enumerate(folds)
+    ]
+    fig3 = _fig3_runs(folds[0], s, out)
+    units += [*fig3, partial(train_no_left_turns, out, folds[0][0], s), partial(table10_unit, out, s)]
+    bar = ProgressBar("reproduce", len(units), unit="unit", enabled=progress)
+    done = run_all(units, jobs, bar.advance)
     bar.close()
+    fold_scores, t10 = done[: len(folds)], done[-1]
     results = {
-        "fig3": _fig3(folds[0], s, settings, out, progress),
+        "fig3": _plot_fig3(fig3, done[len(folds) : len(folds) + len(fig3)], out),
         "settings": asdict(s),
-        "table5_6": {k: mean_sd(v) for k, v in table5.items() if v},
-        "tracking": {k: mean_sd(v) for k, v in track.items()},
+        "table5_6": {k: mean_sd([f["table5"][k] for f in fold_scores]) for k in one_step},
+        "tracking": {k: mean_sd([f["tracking"][k] for f in fold_scores]) for k in fold_scores[0]["tracking"]},
         "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
     }
-    t10 = table10(s.seed, particles=s.particles) if s.landmark else {}
     results["table10"] = {k: v for k, v in t10.items() if not k.startswith("spread")}
     results["table10_spread"] = {k: v for k, v in t10.items() if k.startswith("spread")}
     folders = [out / f"models_fold{i}" for i in range(len(folds))]
@@ -309,18 +329,21 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True) -> dict:
     return results
 
 
-def _fig3(fold: tuple[Flight, Flight], s: ReproduceSettings, settings: TrainSettings, out: Path,
-          progress: bool) -> dict:  # fmt: skip
-    """Paper Fig. 3 on the first fold; writes ``fig3_training_points.png``."""
-    from agents.experiments.fig3 import data_sparsity, plot_data_sparsity, size_levels
+def _fig3_runs(fold: tuple[Flight, Flight], s: ReproduceSettings, out: Path) -> list:
+    """Paper Fig. 3's runs on the first fold, kept in ``out/fig3_runs``."""
+    from agents.experiments.fig3 import fig3_runs, size_levels
 
-    points = size_levels(s.points, s.fig3_smallest)
-    pseudo = [m for m in s.fig3_pseudo if m <= s.points]
-    bar = ProgressBar("fig. 3", (len(points) + len(pseudo)) * s.fig3_repeats, unit="run", enabled=progress)
-    res = data_sparsity(
-        *fold, settings, points=points, pseudo=pseudo, repeats=s.fig3_repeats,
-        track_seconds=s.track_seconds, seed=s.seed, tick=bar.advance, cache=out / "fig3_runs",
+    return fig3_runs(
+        *fold, s.train_settings(), points=size_levels(s.points, s.fig3_smallest),
+        pseudo=[m for m in s.fig3_pseudo if m <= s.points], repeats=s.fig3_repeats,
+        track_seconds=s.track_seconds, seed=s.seed, cache=out / "fig3_runs",
     )  # fmt: skip
-    bar.close()
+
+
+def _plot_fig3(runs: list, results: list[dict], out: Path) -> dict:
+    """Fig. 3's table from its runs; writes ``fig3_training_points.png``."""
+    from agents.experiments.fig3 import fig3_table, plot_data_sparsity
+
+    res = fig3_table(runs, results)
     plot_data_sparsity(res, out / "fig3_training_points.png")
     return res

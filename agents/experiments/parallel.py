@@ -1,0 +1,67 @@
+"""Independent experiment units in worker processes (``--jobs``).
+
+A unit is a picklable zero-argument callable (a module-level function bound with
+:func:`functools.partial`) that writes what it finishes into the run's folder (models,
+kept JSON scores), so a run stopped part way resumes from the units already done. Units
+draw from their own seeds, so ``jobs`` changes how long a run takes, not what it finds.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from typing import TypeVar
+
+__all__ = ["MAX_JOBS", "check_jobs", "run_all"]
+
+T = TypeVar("T")
+MAX_JOBS = 64  # worker processes an experiment may ask for
+
+
+def check_jobs(jobs: object) -> int:
+    """``jobs`` if it is an integer in ``[1, MAX_JOBS]``; otherwise a ValueError naming it."""
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or not 1 <= jobs <= MAX_JOBS:
+        raise ValueError(f"jobs must be an integer in [1, {MAX_JOBS}], got {jobs!r}")
+    return jobs
+
+
+def _one_blas_thread() -> None:
+    """Worker start-up: BLAS on one thread (``jobs`` processes share the cores)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+
+
+def run_all(
+    units: Sequence[Callable[[], T]], jobs: int = 1, tick: Callable[[], None] | None = None
+) -> list[T]:
+    """Each unit's result, in the order given; ``tick()`` after each finishes.
+
+    ``jobs`` 1 runs them here, one after the other; more start that many worker processes
+    (at most one per unit), each with single-threaded BLAS. The first unit to fail cancels
+    the units not yet started and its error is raised once the running ones finish (what
+    they finished is kept on disk for a resumed run)."""
+    check_jobs(jobs)
+    if jobs == 1 or len(units) <= 1:
+        out = []
+        for unit in units:
+            out.append(unit())
+            if tick:
+                tick()
+        return out
+    ctx = multiprocessing.get_context("forkserver" if os.name == "posix" else "spawn")
+    workers = min(jobs, len(units))
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_one_blas_thread) as pool:
+        futures = [pool.submit(unit) for unit in units]
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            for f in done:
+                if f.exception() is not None:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise f.exception()  # type: ignore[misc]
+                if tick:
+                    tick()
+        return [f.result() for f in futures]
