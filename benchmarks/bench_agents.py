@@ -25,6 +25,7 @@ from agents.sim import collect_flight
 from estimator_service.training import TrainSettings, train_models
 
 BATCHED_ENVS = 16
+OUTPUTS = 12 + 2 * 5  # GP outputs per filter step: the state change, two cameras' ellipses
 
 
 def throughput(spec: AgentSpec, steps: int, n_envs: int = 1, smoke: bool = False) -> float:
@@ -50,6 +51,33 @@ def throughput(spec: AgentSpec, steps: int, n_envs: int = 1, smoke: bool = False
         rate = steps / (time.perf_counter() - t0)
         venv.close()
     return rate
+
+
+def env_step_ms(variant: str, models: str, n_envs: int, steps: int) -> float:
+    """Milliseconds per step of the batched env alone (random actions, one core): the part of
+    PPO's step that the filter adds to, without the learner."""
+    import numpy as np
+
+    from agents.rl.batched import BeliefVecEnv
+
+    with threadpool_limits(1):
+        env = BeliefVecEnv(variant, n_envs, models=models if variant != "state" else None)
+        env.seed(0)
+        env.reset()
+        actions = np.random.default_rng(0).uniform(-1, 1, (steps + 20, n_envs, 3)).astype(np.float32)
+        for k, a in enumerate(actions):
+            if k == 20:  # warm-up done
+                t0 = time.perf_counter()
+            env.step_async(a)
+            env.step_wait()
+        env.close()
+    return 1e3 * (time.perf_counter() - t0) / steps
+
+
+def variance_floor_ms(points: int, n_envs: int, outputs: int, gflops: float) -> float:
+    """The exact GP-EKF's predictive variances at the machine's dgemm rate: ``|L^-1 k|^2`` costs
+    ``n^2`` flops per query and output (a triangle of multiply-adds), ``n_envs`` queries."""
+    return 1e3 * n_envs * points**2 * outputs / (gflops * 1e9)
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
@@ -78,6 +106,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             name: throughput(AgentSpec(variant=v, model="gp", models=tmp), b_steps, n_batched, args.smoke)
             for name, v in (("state", "state"), ("belief", "belief"))
         }
+        env_ms = {v: env_step_ms(v, tmp, n_batched, 50 if args.smoke else 400) for v in ("state", "belief")}
     for name, r in rates.items():
         print(f"PPO on {name:14s}: {r:8.1f} env steps/s")
     for name, r in batched.items():
@@ -95,6 +124,22 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "gp_points": points,
     }
     out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
+    # where the batched belief step's time goes, against the machine's flop limit
+    state_ms = 1e3 * n_batched / batched["state"]  # one PPO step of all envs, learner included
+    floor = variance_floor_ms(points, n_batched, OUTPUTS, out["dgemm_gflops"])
+    out.update({
+        "batched_env_state_ms": round(env_ms["state"], 3),
+        "batched_env_belief_ms": round(env_ms["belief"], 3),
+        "filter_ms": round(env_ms["belief"] - env_ms["state"], 3),
+        "variance_floor_ms": round(floor, 3),
+        "filter_to_floor_ratio": round((env_ms["belief"] - env_ms["state"]) / floor, 1),
+        "ratio_at_floor": round(state_ms / (state_ms + floor), 3),
+    })  # fmt: skip
+    print(
+        f"filter per batched step {out['filter_ms']:.2f} ms, {out['filter_to_floor_ratio']}x the exact-GP "
+        f"variances' flop floor ({floor:.2f} ms at {out['dgemm_gflops']} GFLOP/s): at the floor the "
+        f"batched ratio would be {out['ratio_at_floor']}"
+    )
     print(json.dumps(out))
     return out
 

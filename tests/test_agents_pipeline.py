@@ -228,9 +228,11 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
 
 def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import agents.experiments.gap_sweep as gap_module
-    from agents.experiments.gap_sweep import gap_sweep
+    from agents.experiments.gap_sweep import SWEEP_FOLDER, gap_sweep, report_lines
     from agents.experiments.reproduce import ReproduceSettings
 
+    assert report_lines(tmp_path) == []  # a reproduction's report without a sweep has no section
+    run, tmp_path = tmp_path, tmp_path / SWEEP_FOLDER  # where the report looks for it
     s = ReproduceSettings(minutes=1.0, folds=2, points=30, pseudo=5, max_iter=3, track_seconds=20,
                           calibration_folds=2, calibration_refit=False)  # fmt: skip
     res = gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False, jobs=2)
@@ -240,6 +242,8 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.Monkey
     assert (tmp_path / "gap_sweep.png").stat().st_size > 5_000 and "| 1 |" in (
         tmp_path / "gap_sweep.md"
     ).read_text()
+    section = "\n".join(report_lines(run))
+    assert "| 1 |" in section and f"({SWEEP_FOLDER}/gap_sweep.png)" in section
     monkeypatch.setattr(gap_module, "train_models", _no_training)  # resumes: the same table
     monkeypatch.setattr(gap_module, "tracking", _no_training)
     assert gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False) == res

@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXPECTED = {
     "bench_agents.py": {
         "state_steps_per_s", "belief_steps_per_s", "belief_to_state_ratio", "batched_belief_to_state_ratio",
+        "filter_ms", "variance_floor_ms", "ratio_at_floor",
     },
     "bench_service.py": {
         "rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz", "fleet_blimps_at_4hz",

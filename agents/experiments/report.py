@@ -397,7 +397,9 @@ def write_report(out: Path, res: dict) -> Path:
                 f"{v['velocity']:.3f} ± {v['velocity_se']:.3f} | {v['step_ms']:.2f} |"
             )
         lines += ["", *_spread_lines(res.get("table10_spread", {})), ""]
-    lines += _checks(res)
+    from agents.experiments.gap_sweep import report_lines
+
+    lines += report_lines(out) + _checks(res)
     path = out / "report.md"
     atomic_write_text(path, "\n".join(lines))
     return path
