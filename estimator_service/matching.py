@@ -29,7 +29,6 @@ from estimator_service.tracking import TrackResult
 __all__ = [
     "COVERAGE_FACTORS",
     "GAUSSIAN_WITHIN3",
-    "HOLD_MOVE",
     "MATCH_ROUNDS",
     "MATCH_STEP",
     "MATCH_TOLERANCE",
@@ -37,7 +36,6 @@ __all__ = [
     "Block",
     "coverage_curve",
     "covering_factor",
-    "elasticity",
     "leverage",
     "match_scales",
     "track_block",
@@ -49,7 +47,6 @@ MATCH_ROUNDS = 8  # matching rounds
 MATCH_STEP = 4.0  # the most one round changes an output's scale (either way)
 MATCH_TOLERANCE = 0.1  # matching stops once every output's e^2 / P is within 10 % of 1
 MIN_LEVERAGE = 0.25  # the weakest response of e^2 / P to its own scale that is followed
-HOLD_MOVE = 2.0  # a move of an output's scale (either way) large enough to judge whether it is followed
 #: factors on the matched process and observation noise tried, smallest first
 COVERAGE_FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
 
@@ -97,74 +94,44 @@ def match_scales(
     """Process-noise scales ``(n,)`` from ``scale``: each round tracks every block and
     multiplies each output's scale by its ``e_i^2 / P_ii`` over all their steps raised to the inverse of
     its :func:`leverage` (the factor clipped to ``[1 / max_step, max_step]``); returns the
-    scales and each round's NEES, ratios and held outputs.
+    scales and each round's NEES and ratios.
 
     One-step residuals alone miss errors that persist over many steps (gusts with a 3 s
     correlation time, actuator lag, an unobserved drift such as the yaw's): on a held-out
     flight the yaw's ``e^2 / P`` was 14 with one-step scales.
-
-    An output whose ratio does not follow its scale (:func:`elasticity` below
-    :data:`MIN_LEVERAGE` after a move by at least :data:`HOLD_MOVE`) is held at its scale
-    before that move for the remaining rounds: its errors are a bias that more noise does
-    not cover, and raising it further only loosens the filter. Followed to the end, a
-    900-point heteroscedastic GP's roll rate (``e^2 / P`` 4-16 in every round) reached 196
-    times its one-step scale, and the filter diverged on the held-out fold (lab world,
-    seed 0, fold 3).
     """
-    history: list[dict] = []
-    last = None  # the previous round's (scale, z2), for the leverage
-    held = np.zeros(len(scale), bool)
+    history, last = [], None  # last: the previous round's (scale, z2), for the leverage
     for _ in range(rounds):
-        if (
-            history
-            and history[-1]["e2_over_var"] is not None
-            and _converged(history[-1]["e2_over_var"], held)
-        ):
+        if history and history[-1]["e2_over_var"] is not None and _converged(history[-1]["e2_over_var"]):
             break
         runs = [r for r in (track_block(b, scale) for b in blocks) if r is not None]
         if not runs:  # every block blew up: keep the last scales that tracked
-            history.append({"nees": None, "e2_over_var": None, "held": np.flatnonzero(held).tolist()})
+            history.append({"nees": None, "e2_over_var": None})
             return (last[0] if last is not None else scale), history
         z2 = np.concatenate([r.error**2 / np.diagonal(r.cov, axis1=1, axis2=2) for r in runs]).mean(axis=0)
         z2 = np.nan_to_num(z2, nan=max_step, posinf=max_step)
-        power = np.ones(len(scale))
-        if last is not None:
-            el = elasticity(last, (scale, z2))
-            moved = np.abs(np.log(scale / last[0])) >= math.log(HOLD_MOVE)
-            newly = ~held & moved & (el < MIN_LEVERAGE)
-            scale = np.where(newly, last[0], scale)  # the move that did not help is undone
-            held |= newly
-            power = 1.0 / np.clip(el, MIN_LEVERAGE, 1.0)
         nees = float(np.mean([r.scores()["nees"] for r in runs]))
-        history.append({"nees": nees, "e2_over_var": z2.tolist(), "held": np.flatnonzero(held).tolist()})
+        history.append({"nees": nees, "e2_over_var": z2.tolist()})
+        power = 1.0 if last is None else 1.0 / leverage(last, (scale, z2))
         last = (scale, z2)
-        scale = scale * np.where(held, 1.0, np.clip(z2**power, 1 / max_step, max_step))
+        scale = scale * np.clip(z2**power, 1 / max_step, max_step)
     return scale, history
 
 
-def _converged(z2: list[float], held: NDArray[np.bool_]) -> bool:
-    """Every output not held has ``e^2 / P`` within the tolerance of 1."""
-    off = np.abs(np.log(np.maximum(z2, 1e-12))) > math.log(1 + MATCH_TOLERANCE)
-    return not bool(np.any(off & ~held))
-
-
-def elasticity(before: tuple[FloatArray, FloatArray], after: tuple[FloatArray, FloatArray]) -> FloatArray:
-    """Per output, ``-d log(e^2/P) / d log(scale)`` between two rounds ``(scale, e^2/P)``:
-    1 for a ratio that falls as its scale rises, 0 for one that does not move, negative for
-    one that rises; 1 where the scale did not move."""
-    ds = np.log(after[0] / before[0])
-    dz = np.log(np.maximum(after[1], 1e-12) / np.maximum(before[1], 1e-12))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        el = np.where(np.abs(ds) > 1e-3, -dz / ds, 1.0)
-    return np.nan_to_num(el, nan=1.0)
+def _converged(z2: list[float]) -> bool:
+    return bool(np.all(np.abs(np.log(np.maximum(z2, 1e-12))) <= math.log(1 + MATCH_TOLERANCE)))
 
 
 def leverage(before: tuple[FloatArray, FloatArray], after: tuple[FloatArray, FloatArray]) -> FloatArray:
     """Per output, how strongly ``e^2 / P`` fell as its process-noise scale rose between two
-    rounds: the :func:`elasticity` clipped to ``[MIN_LEVERAGE, 1]``. A state the sensors pin
-    (the yaw, the position) has a posterior variance near ``sqrt(Q R)``, so its ratio falls
-    about as ``scale^-1/2``."""
-    return np.clip(elasticity(before, after), MIN_LEVERAGE, 1.0)
+    rounds, ``-d log(e^2/P) / d log(scale)`` in ``[MIN_LEVERAGE, 1]`` (1 where the scale did
+    not move or the ratio rose). A state the sensors pin (the yaw, the position) has a
+    posterior variance near ``sqrt(Q R)``, so its ratio falls about as ``scale^-1/2``."""
+    ds = np.log(after[0] / before[0])
+    dz = np.log(np.maximum(after[1], 1e-12) / np.maximum(before[1], 1e-12))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lev = np.where(np.abs(ds) > 1e-3, -dz / ds, 1.0)
+    return np.clip(np.nan_to_num(lev, nan=1.0), MIN_LEVERAGE, 1.0)
 
 
 def coverage_curve(blocks: Sequence[Block], scale: FloatArray) -> list[float]:
