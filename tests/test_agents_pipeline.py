@@ -228,7 +228,8 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
 
 def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import agents.experiments.gap_sweep as gap_module
-    from agents.experiments.gap_sweep import SWEEP_FOLDER, gap_sweep, report_lines
+    from agents.experiments.gap_report import SWEEP_FOLDER, report_lines
+    from agents.experiments.gap_sweep import gap_sweep
     from agents.experiments.reproduce import ReproduceSettings
 
     assert report_lines(tmp_path) == []  # a reproduction's report without a sweep has no section

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from agents.experiments.report import _aggregate_gain, _checks, _filter_checks, improvement
+from agents.experiments.measures import aggregate_gain, improvement
+from agents.experiments.report import _checks, _filter_checks
 from agents.experiments.report_why import WHY
 
 
@@ -19,7 +20,7 @@ def test_improvement_averages_the_groups_not_the_mixed_unit_sum() -> None:
     tr = {"ekf/param": _row(40.0, 1.0, 20.0, 1.0), "ekf/gp": _row(20.0, 2.0, 20.0, 1.0)}
     assert improvement(tr, "ekf/gp", "ekf/param") == pytest.approx((50.0 - 100.0) / 4)
     # the mixed-unit sum the report shows beside it calls the same rows a 29% improvement
-    assert _aggregate_gain(tr, "ekf/gp", "ekf/param") == pytest.approx(100 * (1 - 10.75 / 15.5))
+    assert aggregate_gain(tr, "ekf/gp", "ekf/param") == pytest.approx(100 * (1 - 10.75 / 15.5))
 
 
 def test_checks_use_table_7_measure_for_the_20_percent_claim() -> None:

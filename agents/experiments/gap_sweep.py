@@ -15,8 +15,9 @@ from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 
+from agents.experiments.gap_report import FILTERS, KINDS, describe
+from agents.experiments.measures import improvement
 from agents.experiments.parallel import check_jobs, run_all
-from agents.experiments.report import improvement
 from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
@@ -26,13 +27,9 @@ from estimator_service.progress import ProgressBar
 from estimator_service.tracking import mean_sd
 from estimator_service.training import train_models
 
-__all__ = ["STRENGTHS", "SWEEP_FOLDER", "gap_sweep", "report_lines"]
+__all__ = ["STRENGTHS", "gap_sweep"]
 
 STRENGTHS = (0.0, 0.5, 1.0, 2.0)
-#: where a reproduction's report finds a sweep: ``gpbf gap-sweep --out <reproduce out>/gap_sweep``
-SWEEP_FOLDER = "gap_sweep"
-KINDS = ("param", "gp", "egp")
-FILTERS = ("ekf", "ukf")
 
 
 def sweep_unit(out: Path, strength: float, i: int, train: Flight, test: Flight, s: ReproduceSettings) -> dict:
@@ -81,41 +78,6 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
     atomic_write_text(out / "gap_sweep.md", "\n".join(describe(result)) + "\n")
     _plot(result, out / "gap_sweep.png")
     return result
-
-
-def describe(result: dict) -> list[str]:
-    """The sweep as a markdown table."""
-    cols = [f"{f}/{k}" for f in FILTERS for k in KINDS if k != "param"]
-    lines = [
-        "## Improvement over Param against the reality gap (Table 7 measure, %)",
-        "",
-        "| strength | " + " | ".join(c.upper() for c in cols) + " |",
-        "| ---: | " + " | ".join("---:" for _ in cols) + " |",
-    ]
-    for strength, row in result["improvement_pct"].items():
-        lines.append(f"| {strength} | " + " | ".join(f"{row[c]:.0f}" for c in cols) + " |")
-    return lines
-
-
-def report_lines(out: Path) -> list[str]:
-    """The report section of the sweep in ``out/gap_sweep`` (none when it has not run)."""
-    path = out / SWEEP_FOLDER / "gap_sweep.json"
-    if not path.exists():
-        return []
-    result = json.loads(path.read_text())
-    s = result["settings"]
-    return [
-        *describe(result)[:2],
-        f"Beyond the paper (`gpbf gap-sweep`, seed {s['seed']}, the sizes above): one scripted flight "
-        "per reality strength in the lab's drafts (0: the textbook world the parametric model "
-        "describes, 1: the lab, 2: twice its unmodelled physics), the same cross-validation, and "
-        "the Table 7 measure of the GP and EGP filters against Param.",
-        "",
-        f"![gap sweep]({SWEEP_FOLDER}/gap_sweep.png)",
-        "",
-        *describe(result)[2:],
-        "",
-    ]
 
 
 def _plot(result: dict, path: Path) -> None:

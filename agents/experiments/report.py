@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.experiments.measures import aggregate_gain, improvement
 from agents.experiments.report_why import WHY
 from estimator_service.files import atomic_write_text
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
@@ -145,18 +146,6 @@ def _tables7_9(res: dict) -> list[str]:
     return [*lines, "", *_bands(res), *_scales_line(res)]
 
 
-def _aggregate_gain(tr: dict, key: str, base: str) -> float:
-    """Improvement (%) of ``key`` over ``base`` on the aggregate RMS (mean of the group RMS)."""
-    return 100 * (1 - tr[key]["aggregate_rms"][0] / tr[base]["aggregate_rms"][0])
-
-
-def improvement(tr: dict, key: str, base: str) -> float:
-    """Table 7's aggregate improvement (%) of ``key`` over ``base``: each state group's RMS
-    improvement, averaged over the four groups (from fold means)."""
-    v, b = tr[key], tr[base]
-    return float(100 * np.mean([1 - v[g][0] / b[g][0] for g in GROUPS]))
-
-
 def _bands(res: dict) -> list[str]:
     """The 95% bands of a consistent filter's averaged NEES and NIS/dof, and who is inside."""
     tr, folds = res["tracking"], res["settings"]["folds"]
@@ -219,7 +208,7 @@ def claims(res: dict) -> list[tuple[str, str, bool]]:
         edge = improvement(tr, "ukf/gp", "ekf/gp")
         claim = (
             f"GP-UKF edges out GP-EKF ({edge:+.1f}% per group as Table 7 averages; "
-            f"{_aggregate_gain(tr, 'ukf/gp', 'ekf/gp'):+.1f}% on aggregate RMS)"
+            f"{aggregate_gain(tr, 'ukf/gp', 'ekf/gp'):+.1f}% on aggregate RMS)"
         )
         checks.append(("table7_ukf_edges_ekf", claim, edge >= 0))
     f4 = res.get("fig4", {})
@@ -291,7 +280,7 @@ def _filter_checks(tr: dict, f: str) -> list[tuple[str, str, bool]]:
             (
                 f"table7_{f}_gp_20pct",
                 f"{f.upper()}: GP improves over Param by >= 20% ({imp['gp']:.0f}% as Table 7 averages "
-                f"the groups; {_aggregate_gain(tr, f'{f}/gp', f'{f}/param'):.0f}% on aggregate RMS)",
+                f"the groups; {aggregate_gain(tr, f'{f}/gp', f'{f}/param'):.0f}% on aggregate RMS)",
                 imp["gp"] >= 20,
             )
         )
@@ -397,7 +386,7 @@ def write_report(out: Path, res: dict) -> Path:
                 f"{v['velocity']:.3f} ± {v['velocity_se']:.3f} | {v['step_ms']:.2f} |"
             )
         lines += ["", *_spread_lines(res.get("table10_spread", {})), ""]
-    from agents.experiments.gap_sweep import report_lines
+    from agents.experiments.gap_report import report_lines
 
     lines += report_lines(out) + _checks(res)
     path = out / "report.md"
