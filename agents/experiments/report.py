@@ -24,7 +24,7 @@ def _big(x: float, fmt: str = "{:.1f}") -> str:
 
 
 def _ms(v: list[float], fmt: str = "{:.2f}") -> str:
-    return f"{fmt.format(v[0])} ± {fmt.format(v[1])}"
+    return f"{_big(v[0], fmt)} ± {_big(v[1], fmt)}"
 
 
 def _table5(res: dict) -> list[str]:
@@ -136,9 +136,9 @@ def _tables7_9(res: dict) -> list[str]:
         for k in kinds:
             v = tr[f"{f}/{k}"]
             imp = improvement(tr, f"{f}/{k}", f"{f}/param") if f"{f}/param" in tr else float("nan")
-            groups = " | ".join(f"{v[g][0]:.2f}" for g in GROUPS)
+            groups = " | ".join(_big(v[g][0], "{:.2f}") for g in GROUPS)
             lines.append(
-                f"| {f.upper()} | {k} | {groups} | {imp:.0f}% | {_ms(v['aggregate_rms'])} | "
+                f"| {f.upper()} | {k} | {groups} | {_big(imp, '{:.0f}')}% | {_ms(v['aggregate_rms'])} | "
                 f"{_big(v['mll'][0])} | "
                 f"{v['step_ms'][0]:.2f} | {_big(v['nees'][0])} | {_big(v['nis_per_dof'][0], '{:.2f}')} | "
                 f"{v['failed'][0]:.2f} |"
@@ -279,17 +279,18 @@ def _filter_checks(tr: dict, f: str) -> list[tuple[str, str, bool]]:
         checks.append(
             (
                 f"table7_{f}_gp_20pct",
-                f"{f.upper()}: GP improves over Param by >= 20% ({imp['gp']:.0f}% as Table 7 averages "
-                f"the groups; {aggregate_gain(tr, f'{f}/gp', f'{f}/param'):.0f}% on aggregate RMS)",
+                f"{f.upper()}: GP improves over Param by >= 20% ({_big(imp['gp'], '{:.0f}')}% as Table 7 "
+                f"averages the groups; {_big(aggregate_gain(tr, f'{f}/gp', f'{f}/param'), '{:.0f}')}% on "
+                "aggregate RMS)",
                 imp["gp"] >= 20,
             )
         )
     if "egp" in imp and "gp" in imp:
-        text = f"{f.upper()}: EGP at least as good as GP ({imp['egp']:.0f}%)"
+        text = f"{f.upper()}: EGP at least as good as GP ({_big(imp['egp'], '{:.0f}')}%)"
         checks.append((f"table7_{f}_egp_ge_gp", text, imp["egp"] >= imp["gp"] - 1))
     if "hetgp" in imp:  # Param counts too: its improvement over itself is 0
         best = max(0.0, *imp.values())
-        text = f"{f.upper()}: hetGP best or tied ({imp['hetgp']:.0f}%)"
+        text = f"{f.upper()}: hetGP best or tied ({_big(imp['hetgp'], '{:.0f}')}%)"
         checks.append((f"table7_{f}_hetgp_best", text, imp["hetgp"] >= best - 2))
     if "sparse" in imp and "gp" in imp:
         rms = tr[f"{f}/sparse"]["aggregate_rms"][0] / tr[f"{f}/gp"]["aggregate_rms"][0]
