@@ -36,6 +36,8 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["train", "f.npz", "--calibration-seconds", "-5"], "--calibration-seconds"),
         (["train-agent", "--timesteps", "0"], "--timesteps"),
         (["eval-agent", "a.zip", "--episodes", "0"], "--episodes"),
+        (["reproduce", "--jobs", "0"], "--jobs"),
+        (["gap-sweep", "--jobs", "65"], "--jobs"),
         (["serve", "--models", "m", "--workers", "0"], "--workers"),
         (["serve"], "--models"),
         (["frobnicate"], "invalid choice"),
