@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import time
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from agents.experiments.parallel import MAX_JOBS, check_jobs, run_all
+from agents.experiments.parallel import MAX_JOBS, PARENT_POLL_S, check_jobs, run_all
 
 
 def _draw(seed: int) -> tuple[int, float]:
@@ -48,6 +51,40 @@ def test_a_failing_units_error_reaches_the_caller(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="unit failed"):
         run_all([partial(_fail, tmp_path / "x"), partial(_write, tmp_path / "y")], 2)
     assert run_all([], 2) == []
+
+
+def _record_and_sleep(folder: str) -> None:
+    Path(folder, str(os.getpid())).write_text("")
+    time.sleep(120)
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").exists(), reason="reads process states from /proc")
+def test_killing_the_experiment_ends_its_workers(tmp_path: Path) -> None:
+    code = (
+        f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); from functools import partial; "
+        "import test_parallel as t; from agents.experiments.parallel import run_all; "
+        f"run_all([partial(t._record_and_sleep, {str(tmp_path)!r})] * 2, 2)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    deadline = time.monotonic() + 60
+    while len(list(tmp_path.iterdir())) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    workers = [int(p.name) for p in tmp_path.iterdir()]
+    assert len(workers) == 2 and all(_running(w) for w in workers)
+    proc.kill()  # no clean-up in the experiment's process
+    proc.wait()
+    deadline = time.monotonic() + 10 * PARENT_POLL_S
+    while any(_running(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_running(w) for w in workers)
 
 
 @pytest.mark.parametrize("jobs", [0, -1, MAX_JOBS + 1, 1.5, "2", True, None])

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 from typing import TypeVar
@@ -27,11 +29,28 @@ def check_jobs(jobs: object) -> int:
     return jobs
 
 
-def _one_blas_thread() -> None:
-    """Worker start-up: BLAS on one thread (``jobs`` processes share the cores)."""
+PARENT_POLL_S = 1.0  # how often a worker checks that the process that started it is alive
+
+
+def _worker_start(parent: int) -> None:
+    """Worker start-up: BLAS on one thread (``jobs`` processes share the cores), and an exit
+    once ``parent`` (the experiment's process) is gone, so that killing an experiment leaves
+    no workers computing for nobody."""
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
+    threading.Thread(target=_exit_with, args=(parent,), daemon=True, name="parent-watch").start()
+
+
+def _exit_with(parent: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL_S)
+        try:
+            os.kill(parent, 0)
+        except ProcessLookupError:
+            os._exit(1)
+        except PermissionError:  # alive, another user's: cannot be ours
+            pass
 
 
 def run_all(
@@ -40,7 +59,8 @@ def run_all(
     """Each unit's result, in the order given; ``tick()`` after each finishes.
 
     ``jobs`` 1 runs them here, one after the other; more start that many worker processes
-    (at most one per unit), each with single-threaded BLAS. The first unit to fail cancels
+    (at most one per unit), each with single-threaded BLAS, each ending when this process
+    ends (killed or not). The first unit to fail cancels
     the units not yet started and its error is raised once the running ones finish (what
     they finished is kept on disk for a resumed run)."""
     check_jobs(jobs)
@@ -53,7 +73,9 @@ def run_all(
         return out
     ctx = multiprocessing.get_context("forkserver" if os.name == "posix" else "spawn")
     workers = min(jobs, len(units))
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_one_blas_thread) as pool:
+    with ProcessPoolExecutor(
+        workers, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(),)
+    ) as pool:
         futures = [pool.submit(unit) for unit in units]
         pending = set(futures)
         while pending:
