@@ -25,6 +25,7 @@ from agents.sim import collect_flight
 from estimator_service.training import TrainSettings, train_models
 
 BATCHED_ENVS = 16
+WARM_UP = 20  # env steps before the timed ones
 OUTPUTS = 12 + 2 * 5  # GP outputs per filter step: the state change, two cameras' ellipses
 
 
@@ -64,9 +65,9 @@ def env_step_ms(variant: str, models: str, n_envs: int, steps: int) -> float:
         env = BeliefVecEnv(variant, n_envs, models=models if variant != "state" else None)
         env.seed(0)
         env.reset()
-        actions = np.random.default_rng(0).uniform(-1, 1, (steps + 20, n_envs, 3)).astype(np.float32)
+        actions = np.random.default_rng(0).uniform(-1, 1, (steps + WARM_UP, n_envs, 3)).astype(np.float32)
         for k, a in enumerate(actions):
-            if k == 20:  # warm-up done
+            if k == WARM_UP:
                 t0 = time.perf_counter()
             env.step_async(a)
             env.step_wait()

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import math
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from agents.experiments.parallel import run_all
 from agents.experiments.resume import kept
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
@@ -27,7 +26,6 @@ from estimator_service.training import TrainSettings, train_models
 
 __all__ = [
     "Fig3Run",
-    "data_sparsity",
     "describe",
     "fig3_runs",
     "fig3_table",
@@ -119,18 +117,6 @@ def fig3_table(
     for (curve, size), res in sorted(by_point.items(), key=lambda kv: (kv[0][0], kv[0][1])):
         out[curve][str(size)] = {f: mean_sd([x[f] for x in res]) for f in FILTERS}
     return out
-
-
-def data_sparsity(
-    train: Flight, test: Flight, settings: TrainSettings, *, points: Sequence[int], pseudo: Sequence[int],
-    repeats: int, track_seconds: float, seed: int = 0, tick: Callable[[], None] | None = None,
-    cache: Path | None = None, jobs: int = 1,
-) -> dict[str, dict[str, dict[str, dict[str, list[float]]]]]:  # fmt: skip
-    """Run both curves (:func:`fig3_runs`, in ``jobs`` processes) and tabulate them
-    (:func:`fig3_table`)."""
-    runs = fig3_runs(train, test, settings, points=points, pseudo=pseudo, repeats=repeats,
-                     track_seconds=track_seconds, seed=seed, cache=cache)  # fmt: skip
-    return fig3_table(runs, run_all(runs, jobs, tick))
 
 
 def plot_data_sparsity(res: dict, path: Path) -> Path:

@@ -32,13 +32,18 @@ __all__ = ["STRENGTHS", "gap_sweep"]
 STRENGTHS = (0.0, 0.5, 1.0, 2.0)
 
 
+def _world(s: ReproduceSettings, strength: float) -> ReproduceSettings:
+    """``s`` in the lab world at reality ``strength``."""
+    return replace(s, reality="lab", reality_strength=strength)
+
+
 def sweep_unit(out: Path, strength: float, i: int, train: Flight, test: Flight, s: ReproduceSettings) -> dict:
     """Fold ``i`` at ``strength``: its models (``out/models_s<strength>_fold<i>``, kept when
     complete) and their tracking scores ``{"<filter>/<kind>": scores}``, kept."""
     folder = out / f"models_s{strength:g}_fold{i}"
     if not trained(folder):
         train_models([train], folder, kinds=KINDS, settings=s.train_settings(), seed=s.seed + i)
-    world = replace(s, reality="lab", reality_strength=strength)
+    world = _world(s, strength)
     return kept(fold_scores_path(folder), lambda: {
         f"{f}/{k}": tracking(folder, test, world, f, k) for f in FILTERS for k in KINDS})  # fmt: skip
 
@@ -54,8 +59,7 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
     resume_check(out, {**asdict(s), "strengths": list(strengths)})
     units = []
     for strength in strengths:
-        world = replace(s, reality="lab", reality_strength=strength).world
-        flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=world)
+        flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=_world(s, strength).world)
         units += [partial(sweep_unit, out, strength, i, train, test, s)
                   for i, (train, test) in enumerate(split_folds(flight, s.folds))]  # fmt: skip
     with ProgressBar("gap sweep", len(units), unit="fold", enabled=progress) as bar:

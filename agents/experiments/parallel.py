@@ -59,7 +59,7 @@ def run_all(
     """Each unit's result, in the order given; ``tick()`` after each finishes.
 
     ``jobs`` 1 runs them here, one after the other; more start that many worker processes
-    (at most one per unit), each with single-threaded BLAS, each ending when this process
+    (at most one per unit and one per core), each with single-threaded BLAS, each ending when this process
     ends (killed or not). The first unit to fail cancels
     the units not yet started and its error is raised once the running ones finish (what
     they finished is kept on disk for a resumed run)."""
@@ -72,7 +72,7 @@ def run_all(
                 tick()
         return out
     ctx = multiprocessing.get_context("forkserver" if os.name == "posix" else "spawn")
-    workers = min(jobs, len(units))
+    workers = min(jobs, len(units), os.cpu_count() or 1)  # memory grows with workers, not speed
     with ProcessPoolExecutor(
         workers, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(),)
     ) as pool:

@@ -181,12 +181,6 @@ def train_no_left_turns(out: Path, train: Flight, s: ReproduceSettings) -> None:
         )
 
 
-def fig4(folder_full: Path, train: Flight, test: Flight, s: ReproduceSettings, out: Path) -> dict[str, float]:
-    """Remove training transitions with the tail fan pushing left; GP-UKF yaw uncertainty."""
-    train_no_left_turns(out, train, s)
-    return plot_fig4(folder_full, out / NO_LEFT_TURNS, test, out / "fig4_left_turns.png")
-
-
 def plot_fig4(folder_full: Path, reduced: Path, test: Flight, path: Path) -> dict[str, float]:
     """GP-UKF yaw error with its 3-sigma band, all data vs no left-turn data; the figures."""
     import matplotlib.pyplot as plt
@@ -310,7 +304,9 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         "settings": asdict(s),
         "table5_6": {k: mean_sd([f["table5"][k] for f in fold_scores]) for k in one_step},
         "tracking": {k: mean_sd([f["tracking"][k] for f in fold_scores]) for k in fold_scores[0]["tracking"]},
-        "fig4": fig4(out / "models_fold0", folds[0][0], folds[0][1], s, out),
+        "fig4": plot_fig4(
+            out / "models_fold0", out / NO_LEFT_TURNS, folds[0][1], out / "fig4_left_turns.png"
+        ),
     }
     results["table10"] = {k: v for k, v in t10.items() if not k.startswith("spread")}
     results["table10_spread"] = {k: v for k, v in t10.items() if k.startswith("spread")}
