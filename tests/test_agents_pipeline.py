@@ -295,3 +295,29 @@ def test_persistence_finds_an_ar1_errors_mean_and_correlation() -> None:
     assert lag1 == pytest.approx(0.9, abs=0.02) and mean == pytest.approx(1.0, abs=0.3)
     assert rms == pytest.approx(np.sqrt(np.mean(e[mask] ** 2)))
     assert np.isnan(persistence(e, np.arange(e.size) % 2 == 0)[2])  # no consecutive rows
+
+
+def test_fig4_yaw_rate_figures_use_the_tracked_episode_only() -> None:
+    """The Fig. 4 filter tracks the test flight's first episode; the one-step figures must
+    use the same transitions. A test flight with a second episode (a crash and reset, as
+    the lab seed-1 run's had) raised an IndexError before."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from agents.experiments.reproduce import _yaw_rate_figures
+    from estimator_service.tracking import TrackResult
+
+    flight = collect_flight(30, seed=1)
+    first = 50
+    two = dataclasses.replace(flight, episode=(np.arange(len(flight)) >= first).astype(np.int64))
+    steps = first - 1
+    truth = two.state[1:first]
+    r = TrackResult(truth, np.repeat(np.eye(12)[None], steps, axis=0), truth, np.zeros(steps),
+                    np.zeros(steps, np.int64), np.zeros(steps, bool), 0.0)  # fmt: skip
+    zero = SimpleNamespace(predict=lambda x, u: SimpleNamespace(mean=np.zeros_like(x), var=np.ones_like(x)))
+    left = np.arange(steps) % 2 == 0
+    out = _yaw_rate_figures("m", zero, two, r, left)
+    change = two.system.state_error(two.state[1:first], two.state[: first - 1])[left, 11]
+    want = float(np.degrees(np.sqrt(np.mean(change**2))))
+    assert out["m: one-step yaw-rate change error in left turns (deg/s)"] == pytest.approx(want)
+    assert out["m: yaw-rate error in left turns (deg/s)"] == 0.0

@@ -224,12 +224,15 @@ def _yaw_rate_figures(
     """Yaw rate in left turns: the GP-UKF's RMS error and RMS std, and the GP prediction
     model ``pred``'s one-step error (RMS, mean, lag-1 autocorrelation) and RMS predicted std of the
     yaw-rate change at the true states (deg/s). Errors that repeat from step to step build
-    up in a filter that adds each step's predictive variance as independent noise."""
+    up in a filter that adds each step's predictive variance as independent noise.
+
+    ``left (T,)`` marks the tracked steps of ``r``; the one-step figures use the same
+    transitions, those of the rows the filter tracked (the test flight's first episode)."""
     if not left.any():
         return {}
-    inp, change = prediction_data([test])
+    inp, change = prediction_data([test.select(np.arange(len(r.error) + 1))])
     out = pred.predict(inp[:, :12], inp[:, 12:])
-    one = left[: len(inp)]
+    one = left
     rms = lambda a: float(np.degrees(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
     err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), one)
     return {
