@@ -244,7 +244,9 @@ def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Pa
 
     bad = tmp_path / "ppo.yml"
     for text, match in (
-        ("x-v0:\n  normalize: true\n", "'normalize'"),
+        ("x-v0:\n  frame_stack: 4\n", "'frame_stack'"),
+        ('x-v0:\n  normalize: "dict(norm_obs=True)"\n', "normalize must be"),
+        ("x-v0:\n  normalize: {norm_obs: 1}\n", "true or false"),
         ("x-v0:\n  n_envs: 0\n", "n_envs"),
         ('x-v0:\n  policy_kwargs: "dict(net_arch=[8])"\n', "policy_kwargs"),
         ("y-v0: {}\n", "no entry for 'x-v0'"),
@@ -377,3 +379,47 @@ def test_learning_curves_align_seeds_evaluated_at_different_intervals(tmp_path: 
     steps, returns = learning_curves(tmp_path, "hover", "state")
     np.testing.assert_array_equal(steps, np.arange(100_000, 1_000_001, 100_000))
     np.testing.assert_array_equal(returns, np.stack([steps / 1e3, steps / 1e3]))  # each at its own step
+
+
+def test_normalize_is_read_applied_saved_and_used_when_the_agent_acts(tmp_path: Path) -> None:
+    """rl-zoo3's ``normalize`` key: SB3's ``VecNormalize`` during training, its statistics
+    saved beside the agent and applied, frozen, whenever the saved agent acts."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from agents.rl.hyperparams import load_hyperparams
+    from agents.rl.registry import agent_env_id
+    from agents.rl.training import NORMALIZER_FILE, observation_normalizer
+
+    env_id = agent_env_id("hover", "state")
+    conf = tmp_path / "ppo.yml"
+    conf.write_text(
+        f"{env_id}:\n  n_envs: 2\n  normalize: {{norm_reward: false}}\n  n_steps: 64\n  batch_size: 64\n"
+    )
+    params = load_hyperparams("ppo", env_id, conf)
+    assert params.normalize == {"norm_obs": True, "norm_reward": False} and "normalize" not in params.kwargs
+    conf.write_text(f"{env_id}:\n  n_envs: 2\n  normalize: true\n  n_steps: 64\n  batch_size: 64\n")
+    assert load_hyperparams("ppo", env_id, conf).normalize == {"norm_obs": True, "norm_reward": True}
+    spec = AgentSpec(algo="ppo", variant="state", seed=2)
+    path = train_agent(spec, 6000, tmp_path / "a", eval_freq=10_000, progress_bar=False, hyperparams=conf)
+    norm = VecNormalize.load(str(tmp_path / "a" / NORMALIZER_FILE), make_vec(spec, 1))
+    assert norm.obs_rms.count > 6000  # statistics of every training step
+    env = make_belief_env("state")
+    obs, _ = env.reset(seed=0)
+    want = np.clip((obs - norm.obs_rms.mean) / np.sqrt(norm.obs_rms.var + norm.epsilon), -10, 10)
+    np.testing.assert_allclose(observation_normalizer(path)(obs), want, rtol=1e-5, atol=1e-5)
+    agent, _ = load_agent(path)
+    first = evaluate_agent(path, episodes=1)
+    assert first == evaluate_agent(path, episodes=1)
+    raw_return = _return_of(agent, env, lambda o: o)
+    assert _return_of(agent, env, observation_normalizer(path)) == pytest.approx(first["mean_return"])
+    assert raw_return != pytest.approx(first["mean_return"])  # what the agent sees matters
+    assert observation_normalizer(tmp_path)(obs) is obs  # an agent trained without it
+
+
+def _return_of(agent, env, norm) -> float:
+    obs, _ = env.reset(seed=1000)
+    total, done = 0.0, False
+    while not done:
+        obs, r, term, trunc, _ = env.step(agent.predict(norm(obs), deterministic=True)[0])
+        total, done = total + float(r), term or trunc
+    return total

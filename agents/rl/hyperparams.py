@@ -3,9 +3,10 @@
 The files are read by rl-zoo3 (``--conf-file hyperparams/ppo.yml``) and by
 :func:`~agents.rl.training.train_agent`, which takes the entry of the agent's registered id
 (:func:`~agents.rl.registry.agent_env_id`). Only the keys that both can honour are
-accepted here: the algorithm's keyword arguments, ``policy``, ``n_envs`` and
-``n_timesteps``; a wrapper or normalisation key would change what the agent sees in one
-of the two and not the other, so it is refused with its name.
+accepted here: the algorithm's keyword arguments, ``policy``, ``n_envs``, ``n_timesteps``
+and ``normalize`` (SB3's ``VecNormalize``, which both apply and save beside the agent as
+``vecnormalize.pkl``); a wrapper key would change what the agent sees in one of the two
+and not the other, so it is refused with its name.
 """
 
 from __future__ import annotations
@@ -17,18 +18,22 @@ from typing import Any
 __all__ = ["HYPERPARAMS_DIR", "Hyperparams", "load_hyperparams"]
 
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
+NORMALIZE_BOTH = {"norm_obs": True, "norm_reward": True}  # rl-zoo3's `normalize: true`
 MAX_FILE_BYTES = 1_000_000  # the committed files are about 1.3 kB; a bound on what is parsed
-_REFUSED = ("normalize", "env_wrapper", "frame_stack", "vec_env_wrapper", "callback", "monitor_kwargs")
+_REFUSED = ("env_wrapper", "frame_stack", "vec_env_wrapper", "callback", "monitor_kwargs")
 
 
 @dataclass(frozen=True)
 class Hyperparams:
-    """One file entry: ``n_envs``, ``n_timesteps``, ``policy`` and the algorithm's kwargs."""
+    """One file entry: ``n_envs``, ``n_timesteps``, ``policy``, the algorithm's kwargs and
+    ``normalize``: keyword arguments of SB3's ``VecNormalize`` (``norm_obs``,
+    ``norm_reward``) or None (rl-zoo3's ``normalize: true`` is both)."""
 
     n_envs: int
     n_timesteps: int
     policy: str
     kwargs: dict[str, Any] = field(default_factory=dict)
+    normalize: dict[str, bool] | None = None
 
 
 def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> Hyperparams:
@@ -61,4 +66,19 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> 
             raise ValueError(f"{file.name}[{env_id}]: {key} must be a positive number, got {value!r}")
     if not isinstance(entry.get("policy_kwargs", {}), dict):
         raise ValueError(f"{file.name}[{env_id}]: policy_kwargs must be a mapping (no code strings)")
-    return Hyperparams(int(n_envs), int(n_timesteps), str(policy), entry)
+    normalize = _normalize(entry.pop("normalize", False), f"{file.name}[{env_id}]")
+    return Hyperparams(int(n_envs), int(n_timesteps), str(policy), entry, normalize)
+
+
+def _normalize(value: object, where: str) -> dict[str, bool] | None:
+    """rl-zoo3's ``normalize``: false, true (observations and rewards) or a mapping of
+    ``norm_obs`` / ``norm_reward`` to booleans (no code strings)."""
+    if value is False:
+        return None
+    if value is True:
+        return dict(NORMALIZE_BOTH)
+    if not isinstance(value, dict) or not set(value) <= set(NORMALIZE_BOTH):
+        raise ValueError(f"{where}: normalize must be true, false or a mapping of {sorted(NORMALIZE_BOTH)}")
+    if not all(isinstance(v, bool) for v in value.values()):
+        raise ValueError(f"{where}: normalize's values must be true or false")
+    return {**NORMALIZE_BOTH, **value}

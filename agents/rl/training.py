@@ -2,7 +2,9 @@
 
 An agent is saved as ``<out>/model.zip`` (SB3) with ``<out>/agent.json`` describing how
 to rebuild its observations (variant, task, filter, model kind, model folder), so that
-``evaluate_agent`` and ``gpbf collect --agent`` reproduce its inputs.
+``evaluate_agent`` and ``gpbf collect --agent`` reproduce its inputs; an agent trained with
+``normalize`` also has SB3's ``<out>/vecnormalize.pkl`` (its observation statistics, as
+rl-zoo3 saves them).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
 from stable_baselines3.common.monitor import Monitor
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
 from agents.rl.batched import BeliefVecEnv
 from agents.rl.hyperparams import Hyperparams, load_hyperparams
@@ -35,10 +37,12 @@ __all__ = [
     "evaluate_pilot",
     "load_agent",
     "make_vec",
+    "observation_normalizer",
     "train_agent",
 ]
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
+NORMALIZER_FILE = "vecnormalize.pkl"  # SB3's VecNormalize statistics, rl-zoo3's file name
 
 
 @dataclass(frozen=True)
@@ -156,8 +160,14 @@ def train_agent(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     venv = make_vec(spec, n_envs)
-    agent = _algo(spec, venv, params, small, None if tensorboard is None else str(tensorboard))
     eval_env = make_vec(AgentSpec(**{**asdict(spec), "seed": spec.seed + 10_000}), 1)
+    if params.normalize is not None:  # the eval env takes the training statistics (EvalCallback)
+        gamma = float(params.kwargs.get("gamma", 0.99))
+        venv = VecNormalize(venv, gamma=gamma, **params.normalize)
+        eval_env = VecNormalize(
+            eval_env, training=False, norm_obs=params.normalize["norm_obs"], norm_reward=False
+        )
+    agent = _algo(spec, venv, params, small, None if tensorboard is None else str(tensorboard))
     callbacks = CallbackList(
         [
             EvalCallback(
@@ -178,6 +188,8 @@ def train_agent(
     )
     agent.learn(timesteps, callback=callbacks, progress_bar=progress_bar)
     agent.save(out / "model.zip")
+    if isinstance(venv, VecNormalize):
+        venv.save(out / NORMALIZER_FILE)
     atomic_write_text(out / "agent.json", json.dumps(asdict(_relative_models(spec, out)), indent=2))
     _plot_learning_curve(out)
     venv.close()
@@ -228,6 +240,24 @@ def load_agent(path: str | Path, models: str | Path | None = None) -> tuple[Base
     return ALGOS[spec.algo].load(model_file, device="cpu"), spec
 
 
+def observation_normalizer(path: str | Path) -> Callable[[Any], Any]:
+    """What a saved agent's policy sees of an observation: SB3's ``VecNormalize`` of its
+    training (``vecnormalize.pkl`` beside ``model.zip``) frozen, or the observation itself
+    for an agent trained without ``normalize``."""
+    path = Path(path)
+    file = (path.parent if path.suffix == ".zip" else path) / NORMALIZER_FILE
+    if not file.is_file():
+        return lambda obs: obs
+    import pickle
+
+    with file.open("rb") as f:
+        norm = pickle.load(f)  # SB3's own format; the agent's model.zip is trusted alike
+    if not isinstance(norm, VecNormalize):
+        raise ValueError(f"{os.fspath(file)!r} does not hold SB3's VecNormalize statistics")
+    norm.training = False
+    return norm.normalize_obs
+
+
 def evaluate_agent(
     path: str | Path, episodes: int = 5, seed: int = 1000, on_episode: Callable[[int], None] | None = None,
     models: str | Path | None = None,
@@ -237,9 +267,10 @@ def evaluate_agent(
     ``seed``, ``seed + 1``, ... (``models`` overrides the agent's model folder)."""
     agent, spec = load_agent(path, models)
     env = make_env(AgentSpec(**{**asdict(spec), "seed": seed}))
+    norm = observation_normalizer(path)
 
     def act(obs: Any, info: dict[str, Any]) -> Any:
-        return agent.predict(obs, deterministic=True)[0]
+        return agent.predict(norm(obs), deterministic=True)[0]
 
     return _evaluate(env, act, episodes, seed, on_episode)
 
@@ -302,6 +333,7 @@ class AgentPolicy:
         from agents.rl.wrappers import BeliefObservation
 
         self.agent, spec = load_agent(path)
+        self.normalize = observation_normalizer(path)
         self.shadow = BeliefObservation(
             gym.make(TASK_ENVS[spec.task]),
             spec.variant,
@@ -319,6 +351,6 @@ class AgentPolicy:
         else:
             self.shadow.advance_belief(self._prev, obs, info)
             self.shadow.last_action = self._prev
-        action, _ = self.agent.predict(self.shadow.features(obs, info), deterministic=True)
+        action, _ = self.agent.predict(self.normalize(self.shadow.features(obs, info)), deterministic=True)
         self._prev = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
         return self._prev
