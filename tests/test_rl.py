@@ -388,7 +388,7 @@ def test_normalize_is_read_applied_saved_and_used_when_the_agent_acts(tmp_path: 
 
     from agents.rl.hyperparams import load_hyperparams
     from agents.rl.registry import agent_env_id
-    from agents.rl.training import NORMALIZER_FILE, observation_normalizer
+    from agents.rl.training import NORMALIZER_FILE, _evaluate, observation_normalizer
 
     env_id = agent_env_id("hover", "state")
     conf = tmp_path / "ppo.yml"
@@ -410,16 +410,17 @@ def test_normalize_is_read_applied_saved_and_used_when_the_agent_acts(tmp_path: 
     agent, _ = load_agent(path)
     first = evaluate_agent(path, episodes=1)
     assert first == evaluate_agent(path, episodes=1)
-    raw_return = _return_of(agent, env, lambda o: o)
-    assert _return_of(agent, env, observation_normalizer(path)) == pytest.approx(first["mean_return"])
-    assert raw_return != pytest.approx(first["mean_return"])  # what the agent sees matters
+    norm_obs = observation_normalizer(path)
+    returns = [
+        _evaluate(
+            make_belief_env("state"),
+            lambda o, _, f=f: agent.predict(f(o), deterministic=True)[0],
+            1,
+            1000,
+            None,
+        )
+        for f in (norm_obs, lambda o: o)
+    ]
+    assert returns[0]["mean_return"] == pytest.approx(first["mean_return"])
+    assert returns[1]["mean_return"] != pytest.approx(first["mean_return"])  # what the agent sees matters
     assert observation_normalizer(tmp_path)(obs) is obs  # an agent trained without it
-
-
-def _return_of(agent, env, norm) -> float:
-    obs, _ = env.reset(seed=1000)
-    total, done = 0.0, False
-    while not done:
-        obs, r, term, trunc, _ = env.step(agent.predict(norm(obs), deterministic=True)[0])
-        total, done = total + float(r), term or trunc
-    return total

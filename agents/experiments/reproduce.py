@@ -232,16 +232,15 @@ def _yaw_rate_figures(
         return {}
     inp, change = prediction_data([test.select(np.arange(len(r.error) + 1))])
     out = pred.predict(inp[:, :12], inp[:, 12:])
-    one = left
     rms = lambda a: float(np.degrees(np.sqrt(np.mean(np.square(a)))))  # noqa: E731
-    err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), one)
+    err_rms, err_mean, lag1 = persistence(np.degrees(out.mean[:, 11] - change[:, 11]), left)
     return {
         f"{name}: yaw-rate error in left turns (deg/s)": rms(r.error[left, 11]),
         f"{name}: yaw-rate std in left turns (deg/s)": rms(np.sqrt(r.cov[left, 11, 11])),
         f"{name}: one-step yaw-rate change error in left turns (deg/s)": err_rms,
         f"{name}: one-step yaw-rate change mean error in left turns (deg/s)": err_mean,
         f"{name}: one-step yaw-rate change error, lag-1 autocorrelation in left turns": lag1,
-        f"{name}: one-step yaw-rate change std in left turns (deg/s)": rms(np.sqrt(out.var[one, 11])),
+        f"{name}: one-step yaw-rate change std in left turns (deg/s)": rms(np.sqrt(out.var[left, 11])),
     }
 
 

@@ -75,8 +75,7 @@ def _normalize(value: object, where: str) -> dict[str, bool] | None:
     ``norm_obs`` / ``norm_reward`` to booleans (no code strings)."""
     if value is False:
         return None
-    if value is True:
-        return dict(NORMALIZE_BOTH)
+    value = {} if value is True else value
     if not isinstance(value, dict) or not set(value) <= set(NORMALIZE_BOTH):
         raise ValueError(f"{where}: normalize must be true, false or a mapping of {sorted(NORMALIZE_BOTH)}")
     if not all(isinstance(v, bool) for v in value.values()):
