@@ -239,6 +239,22 @@ def test_registered_ids_build_every_variant_and_hyperparams_cover_them(models: s
         agent_env_id("hover", "telepathy")
 
 
+def test_linear_schedules_are_read_as_rl_zoo3_reads_them(tmp_path: Path) -> None:
+    """``lin_<x>`` starts at x and falls linearly to 0 over training (SB3's progress_remaining
+    runs 1 -> 0), survives pickling with the agent, and numbers stay numbers."""
+    import pickle
+
+    from agents.rl.hyperparams import LinearSchedule, load_hyperparams
+
+    file = tmp_path / "ppo.yml"
+    file.write_text("x-v0:\n  learning_rate: lin_3e-4\n  clip_range: 0.2\n")
+    params = load_hyperparams("ppo", "x-v0", file)
+    lr = params.kwargs["learning_rate"]
+    assert isinstance(lr, LinearSchedule) and params.kwargs["clip_range"] == 0.2
+    assert [lr(p) for p in (1.0, 0.5, 0.0)] == pytest.approx([3e-4, 1.5e-4, 0.0])
+    assert pickle.loads(pickle.dumps(lr)) == lr
+
+
 def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Path) -> None:
     from agents.rl.hyperparams import load_hyperparams
 
@@ -250,6 +266,9 @@ def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Pa
         ("x-v0:\n  n_envs: 0\n", "n_envs"),
         ('x-v0:\n  policy_kwargs: "dict(net_arch=[8])"\n', "policy_kwargs"),
         ("y-v0: {}\n", "no entry for 'x-v0'"),
+        ("x-v0:\n  learning_rate: lin_fast\n", "learning_rate must be a positive number or 'lin_"),
+        ("x-v0:\n  clip_range: -0.2\n", "clip_range must be"),
+        ("x-v0:\n  learning_rate: lin_nan\n", "learning_rate must be"),
     ):
         bad.write_text(text)
         with pytest.raises((ValueError, KeyError), match=match):

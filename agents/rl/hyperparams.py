@@ -5,22 +5,26 @@ The files are read by rl-zoo3 (``--conf-file hyperparams/ppo.yml``) and by
 (:func:`~agents.rl.registry.agent_env_id`). Only the keys that both can honour are
 accepted here: the algorithm's keyword arguments, ``policy``, ``n_envs``, ``n_timesteps``
 and ``normalize`` (SB3's ``VecNormalize``, which both apply and save beside the agent as
-``vecnormalize.pkl``); a wrapper key would change what the agent sees in one of the two
+``vecnormalize.pkl``), with rl-zoo3's ``"lin_<x>"`` linear schedules for ``learning_rate``,
+``clip_range`` and ``clip_range_vf``; a wrapper key would change what the agent sees in one of the two
 and not the other, so it is refused with its name.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["HYPERPARAMS_DIR", "Hyperparams", "load_hyperparams"]
+__all__ = ["HYPERPARAMS_DIR", "Hyperparams", "LinearSchedule", "load_hyperparams"]
 
 HYPERPARAMS_DIR = Path(__file__).with_name("hyperparams")
 NORMALIZE_BOTH = {"norm_obs": True, "norm_reward": True}  # rl-zoo3's `normalize: true`
 MAX_FILE_BYTES = 1_000_000  # the committed files are about 1.3 kB; a bound on what is parsed
 _REFUSED = ("env_wrapper", "frame_stack", "vec_env_wrapper", "callback", "monitor_kwargs")
+SCHEDULED = ("learning_rate", "clip_range", "clip_range_vf")  # keys rl-zoo3 reads "lin_<x>" in
+LINEAR_PREFIX = "lin_"
 
 
 @dataclass(frozen=True)
@@ -67,7 +71,39 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> 
     if not isinstance(entry.get("policy_kwargs", {}), dict):
         raise ValueError(f"{file.name}[{env_id}]: policy_kwargs must be a mapping (no code strings)")
     normalize = _normalize(entry.pop("normalize", False), f"{file.name}[{env_id}]")
+    for key in SCHEDULED:
+        if key in entry:
+            entry[key] = _schedule(entry[key], f"{file.name}[{env_id}].{key}")
     return Hyperparams(int(n_envs), int(n_timesteps), str(policy), entry, normalize)
+
+
+@dataclass(frozen=True)
+class LinearSchedule:
+    """rl-zoo3's ``lin_<start>``: ``start`` at the first update, falling linearly to 0.
+
+    SB3 calls it with the remaining progress (1 at the start of training, 0 at the end).
+    A class, not a closure, so that a saved agent's schedule pickles by name.
+    """
+
+    start: float
+
+    def __call__(self, progress_remaining: float) -> float:
+        return progress_remaining * self.start
+
+
+def _schedule(value: object, where: str) -> float | LinearSchedule:
+    """A number as is, or rl-zoo3's ``"lin_<positive number>"`` as a :class:`LinearSchedule`."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+        return float(value)
+    if isinstance(value, str) and value.startswith(LINEAR_PREFIX):
+        try:
+            start = float(value[len(LINEAR_PREFIX) :])
+        except ValueError:
+            start = math.nan
+        if math.isfinite(start) and start > 0:
+            return LinearSchedule(start)
+    expected = f"a positive number or '{LINEAR_PREFIX}<positive number>'"
+    raise ValueError(f"{where} must be {expected}, got {value!r}")
 
 
 def _normalize(value: object, where: str) -> dict[str, bool] | None:
