@@ -367,9 +367,11 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
         tmp_path, agent, scripted_minutes=1, agent_minutes=1, heldout_minutes=1, settings=tiny
     )
     assert set(loop["tracking"]) == {"scripted", "scripted+agent"} and loop["heldout_episodes"] >= 1
+    assert loop["agent"] == "agents/hover-state-0"  # relative to the report: no machine's paths
     write_report(tmp_path, data)
     report = (tmp_path / "report.md").read_text()
     assert "agent-data loop" in report and "WaypointPilot" in report
+    assert "agent `hover-state-0` flew" in report
     assert (tmp_path / "learning_curves.png").exists() and (tmp_path / "returns.png").exists()
 
 

@@ -66,7 +66,7 @@ def agent_data_loop(
             train_models(flights, folder, kinds=["param", "gp"], settings=settings)
         table[name] = {kind: track_episodes(folder, kind, heldout) for kind in ("gp", "param")}
     data = {
-        "agent": str(agent),
+        "agent": _label(agent, out),
         "task": spec.task,
         "minutes": {"scripted": scripted_minutes, "agent": agent_minutes, "heldout": heldout_minutes},
         "points": settings.n_points,
@@ -77,13 +77,23 @@ def agent_data_loop(
     return data
 
 
+def _label(agent: Path, out: Path) -> str:
+    """The agent's folder, relative to ``out`` when inside it (a committed report names no
+    machine's paths)."""
+    folder = Path(agent).parent if Path(agent).suffix == ".zip" else Path(agent)
+    try:
+        return folder.resolve().relative_to(Path(out).resolve()).as_posix()
+    except ValueError:
+        return folder.as_posix()
+
+
 def agent_data_lines(data: dict[str, Any]) -> list[str]:
     """The report's agent-data table (RMS per state group, paper units)."""
     m = data["minutes"]
     lines = [
         "## The agent-data loop",
         "",
-        f"The {data['task']} agent `{Path(data['agent']).parent.name}` flew {m['agent']} min (training) and "
+        f"The {data['task']} agent `{_name(data['agent'])}` flew {m['agent']} min (training) and "
         f"{m['heldout']} min ({data['heldout_episodes']} held-out episodes); models trained on the "
         f"{m['scripted']}-min scripted flight alone or with the agent's flight ({data['points']} GP points), "
         "tracking the held-out agent episodes with the EKF:",
@@ -95,3 +105,9 @@ def agent_data_lines(data: dict[str, Any]) -> list[str]:
         for kind, s in by_kind.items():
             lines.append(f"| {name} | {kind} | " + " | ".join(f"{s[k]:.3g}" for k in KEYS) + " |")
     return lines
+
+
+def _name(agent: str) -> str:
+    """``hover-state-0`` from ``agents/hover-state-0`` or ``.../hover-state-0/model.zip``."""
+    path = Path(agent)
+    return path.parent.name if path.suffix == ".zip" else path.name
