@@ -12,7 +12,10 @@ from estimator_service.files import atomic_write_text
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 from estimator_service.tracking import GROUPS, consistency_band
 
-__all__ = ["write_report"]
+FIG3_FILE = "fig3_training_points.png"  # written by the reproduce run, shown by the report
+FIG4_FILE = "fig4_left_turns.png"
+
+__all__ = ["FIG3_FILE", "FIG4_FILE", "write_report"]
 
 
 PAPER_T5 = {"param": (3.3, 0.5, 14.6, 1.5), "gp": (1.8, 0.2, 9.8, 1.1), "egp": (1.6, 0.2, 9.6, 1.3)}
@@ -359,7 +362,7 @@ def write_report(out: Path, res: dict) -> Path:
             "that many pseudo-inputs trained on all points (solid); means over repeats and "
             "tracking segments.",
             "",
-            "![fig3](fig3_training_points.png)",
+            f"![fig3]({FIG3_FILE})",
             "",
             *describe(res["fig3"]),
             "",
@@ -367,7 +370,7 @@ def write_report(out: Path, res: dict) -> Path:
     lines += [
         "## Fig. 4: no training data with the tail fan pushing left",
         "",
-        "![fig4](fig4_left_turns.png)",
+        f"![fig4]({FIG4_FILE})",
         "",
     ]
     lines += [f"- {k}: {v:.3f}" for k, v in res["fig4"].items()] + [""]

@@ -22,6 +22,7 @@ import numpy as np
 
 from agents.experiments.landmark import table10
 from agents.experiments.parallel import check_jobs, run_all
+from agents.experiments.report import FIG3_FILE, FIG4_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
@@ -306,9 +307,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         "settings": asdict(s),
         "table5_6": {k: mean_sd([f["table5"][k] for f in fold_scores]) for k in one_step},
         "tracking": {k: mean_sd([f["tracking"][k] for f in fold_scores]) for k in fold_scores[0]["tracking"]},
-        "fig4": plot_fig4(
-            out / "models_fold0", out / NO_LEFT_TURNS, folds[0][1], out / "fig4_left_turns.png"
-        ),
+        "fig4": plot_fig4(out / "models_fold0", out / NO_LEFT_TURNS, folds[0][1], out / FIG4_FILE),
     }
     results["table10"] = {k: v for k, v in t10.items() if not k.startswith("spread")}
     results["table10_spread"] = {k: v for k, v in t10.items() if k.startswith("spread")}
@@ -343,5 +342,5 @@ def _plot_fig3(runs: list, results: list[dict], out: Path) -> dict:
     from agents.experiments.fig3 import fig3_table, plot_data_sparsity
 
     res = fig3_table(runs, results)
-    plot_data_sparsity(res, out / "fig3_training_points.png")
+    plot_data_sparsity(res, out / FIG3_FILE)
     return res
