@@ -247,10 +247,11 @@ def test_linear_schedules_are_read_as_rl_zoo3_reads_them(tmp_path: Path) -> None
     from agents.rl.hyperparams import LinearSchedule, load_hyperparams
 
     file = tmp_path / "ppo.yml"
-    file.write_text("x-v0:\n  learning_rate: lin_3e-4\n  clip_range: 0.2\n")
+    file.write_text("x-v0:\n  learning_rate: lin_3e-4\n  clip_range: 0.2\n  clip_range_vf: null\n")
     params = load_hyperparams("ppo", "x-v0", file)
     lr = params.kwargs["learning_rate"]
     assert isinstance(lr, LinearSchedule) and params.kwargs["clip_range"] == 0.2
+    assert params.kwargs["clip_range_vf"] is None  # SB3's "no value clipping" stays allowed
     assert [lr(p) for p in (1.0, 0.5, 0.0)] == pytest.approx([3e-4, 1.5e-4, 0.0])
     assert pickle.loads(pickle.dumps(lr)) == lr
 
@@ -269,6 +270,9 @@ def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Pa
         ("x-v0:\n  learning_rate: lin_fast\n", "learning_rate must be a positive number or 'lin_"),
         ("x-v0:\n  clip_range: -0.2\n", "clip_range must be"),
         ("x-v0:\n  learning_rate: lin_nan\n", "learning_rate must be"),
+        ("x-v0:\n  learning_rate: .inf\n", "learning_rate must be"),
+        ('x-v0:\n  learning_rate: "3e-4"\n', "learning_rate must be"),
+        ("x-v0:\n  learning_rate: null\n", "learning_rate must be"),
     ):
         bad.write_text(text)
         with pytest.raises((ValueError, KeyError), match=match):

@@ -17,6 +17,7 @@ import numpy as np
 
 from agents.rl import AgentPolicy, load_agent
 from agents.rl.registry import TASK_ENVS
+from agents.rl.training import agent_folder
 from agents.sim import collect_flight
 from estimator_service.factory import build_filter
 from estimator_service.files import atomic_write_text
@@ -80,7 +81,7 @@ def agent_data_loop(
 def _label(agent: Path, out: Path) -> str:
     """The agent's folder, relative to ``out`` when inside it (a committed report names no
     machine's paths)."""
-    folder = Path(agent).parent if Path(agent).suffix == ".zip" else Path(agent)
+    folder = agent_folder(agent)
     try:
         return folder.resolve().relative_to(Path(out).resolve()).as_posix()
     except ValueError:
@@ -93,7 +94,7 @@ def agent_data_lines(data: dict[str, Any]) -> list[str]:
     lines = [
         "## The agent-data loop",
         "",
-        f"The {data['task']} agent `{_name(data['agent'])}` flew {m['agent']} min (training) and "
+        f"The {data['task']} agent `{agent_folder(data['agent']).name}` flew {m['agent']} min (training) and "
         f"{m['heldout']} min ({data['heldout_episodes']} held-out episodes); models trained on the "
         f"{m['scripted']}-min scripted flight alone or with the agent's flight ({data['points']} GP points), "
         "tracking the held-out agent episodes with the EKF:",
@@ -105,9 +106,3 @@ def agent_data_lines(data: dict[str, Any]) -> list[str]:
         for kind, s in by_kind.items():
             lines.append(f"| {name} | {kind} | " + " | ".join(f"{s[k]:.3g}" for k in KEYS) + " |")
     return lines
-
-
-def _name(agent: str) -> str:
-    """``hover-state-0`` from ``agents/hover-state-0`` or ``.../hover-state-0/model.zip``."""
-    path = Path(agent)
-    return path.parent.name if path.suffix == ".zip" else path.name

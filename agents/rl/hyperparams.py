@@ -5,9 +5,9 @@ The files are read by rl-zoo3 (``--conf-file hyperparams/ppo.yml``) and by
 (:func:`~agents.rl.registry.agent_env_id`). Only the keys that both can honour are
 accepted here: the algorithm's keyword arguments, ``policy``, ``n_envs``, ``n_timesteps``
 and ``normalize`` (SB3's ``VecNormalize``, which both apply and save beside the agent as
-``vecnormalize.pkl``), with rl-zoo3's ``"lin_<x>"`` linear schedules for ``learning_rate``,
-``clip_range`` and ``clip_range_vf``; a wrapper key would change what the agent sees in one of the two
-and not the other, so it is refused with its name.
+``vecnormalize.pkl``), with rl-zoo3's ``"lin_<x>"`` linear schedules for
+``learning_rate``, ``clip_range`` and ``clip_range_vf``; a wrapper key would change what
+the agent sees in one of the two and not the other, so it is refused with its name.
 """
 
 from __future__ import annotations
@@ -91,17 +91,19 @@ class LinearSchedule:
         return progress_remaining * self.start
 
 
-def _schedule(value: object, where: str) -> float | LinearSchedule:
-    """A number as is, or rl-zoo3's ``"lin_<positive number>"`` as a :class:`LinearSchedule`."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
-        return float(value)
-    if isinstance(value, str) and value.startswith(LINEAR_PREFIX):
-        try:
-            start = float(value[len(LINEAR_PREFIX) :])
-        except ValueError:
-            start = math.nan
-        if math.isfinite(start) and start > 0:
-            return LinearSchedule(start)
+def _schedule(value: object, where: str) -> float | LinearSchedule | None:
+    """A positive number as is, rl-zoo3's ``"lin_<positive number>"`` as a
+    :class:`LinearSchedule`, or ``null`` where SB3 takes None (``clip_range_vf``: no clipping)."""
+    if value is None and where.endswith(".clip_range_vf"):
+        return None
+    linear = isinstance(value, str) and value.startswith(LINEAR_PREFIX)
+    number = value[len(LINEAR_PREFIX) :] if linear else value
+    try:
+        start = math.nan if isinstance(number, bool) else float(number)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        start = math.nan
+    if math.isfinite(start) and start > 0 and (linear or not isinstance(value, str)):
+        return LinearSchedule(start) if linear else start
     expected = f"a positive number or '{LINEAR_PREFIX}<positive number>'"
     raise ValueError(f"{where} must be {expected}, got {value!r}")
 

@@ -33,6 +33,7 @@ from estimator_service.files import atomic_write_text
 __all__ = [
     "AgentPolicy",
     "AgentSpec",
+    "agent_folder",
     "evaluate_agent",
     "evaluate_pilot",
     "load_agent",
@@ -220,14 +221,19 @@ def _relative_models(spec: AgentSpec, folder: Path) -> AgentSpec:
     return replace(spec, models=os.path.relpath(Path(spec.models).resolve(), folder.resolve()))
 
 
+def agent_folder(path: str | Path) -> Path:
+    """The folder of a saved agent named by its folder or by its ``model.zip``."""
+    path = Path(path)
+    return path.parent if path.suffix == ".zip" else path
+
+
 def load_agent(path: str | Path, models: str | Path | None = None) -> tuple[BaseAlgorithm, AgentSpec]:
     """A saved agent (``model.zip``) and its :class:`AgentSpec` (``agent.json`` beside it).
 
     The spec's model folder is resolved against the agent's folder (so an agent and its
     models can move together and be run from any directory); ``models`` overrides it.
     """
-    path = Path(path)
-    folder = path.parent if path.suffix == ".zip" else path
+    folder = agent_folder(path)
     spec_file, model_file = folder / "agent.json", folder / "model.zip"
     for f in (spec_file, model_file):
         if not f.is_file():
@@ -244,8 +250,7 @@ def observation_normalizer(path: str | Path) -> Callable[[Any], Any]:
     """What a saved agent's policy sees of an observation: SB3's ``VecNormalize`` of its
     training (``vecnormalize.pkl`` beside ``model.zip``) frozen, or the observation itself
     for an agent trained without ``normalize``."""
-    path = Path(path)
-    file = (path.parent if path.suffix == ".zip" else path) / NORMALIZER_FILE
+    file = agent_folder(path) / NORMALIZER_FILE
     if not file.is_file():
         return lambda obs: obs
     import pickle
