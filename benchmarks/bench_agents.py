@@ -12,6 +12,7 @@ GP). The last output line is one JSON object.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import tempfile
 import time
@@ -22,11 +23,11 @@ from threadpoolctl import threadpool_limits
 from agents.rl import AgentSpec, agent_env_id, make_vec
 from agents.rl.hyperparams import load_hyperparams
 from agents.sim import collect_flight
+from estimator_service.gp import ExactGP
 from estimator_service.training import TrainSettings, train_models
 
 BATCHED_ENVS = 16
 WARM_UP = 20  # env steps before the timed ones
-OUTPUTS = 12 + 2 * 5  # GP outputs per filter step: the state change, two cameras' ellipses
 
 
 def throughput(spec: AgentSpec, steps: int, n_envs: int = 1, smoke: bool = False) -> float:
@@ -75,10 +76,29 @@ def env_step_ms(variant: str, models: str, n_envs: int, steps: int) -> float:
     return 1e3 * (time.perf_counter() - t0) / steps
 
 
-def variance_floor_ms(points: int, n_envs: int, outputs: int, gflops: float) -> float:
-    """The exact GP-EKF's predictive variances at the machine's dgemm rate: ``|L^-1 k|^2`` costs
-    ``n^2`` flops per query and output (a triangle of multiply-adds), ``n_envs`` queries."""
-    return 1e3 * n_envs * points**2 * outputs / (gflops * 1e9)
+def exact_gps(obj: object, depth: int = 0) -> list[ExactGP]:
+    """The exact GPs inside a filter (its models, their GPs, stacked parts), found by walking
+    its dataclass fields."""
+    if isinstance(obj, ExactGP):
+        return [obj]
+    if depth > 6:
+        return []
+    if isinstance(obj, (tuple, list)):
+        return [g for o in obj for g in exact_gps(o, depth + 1)]
+    if dataclasses.is_dataclass(obj):
+        return [g for f in dataclasses.fields(obj) for g in exact_gps(getattr(obj, f.name), depth + 1)]
+    return []
+
+
+def variance_cost(models: str) -> tuple[int, int]:
+    """The GP-EKF's exact-GP predictive variances: flops for one query (``|L^-1 k|^2`` costs
+    ``n^2`` per output, a triangle of multiply-adds) and the bytes of inverse-factor blocks a
+    batched step reads once, summed over the prediction GP and each camera's observation GP,
+    each with its own ``n``."""
+    from estimator_service.factory import build_filter
+
+    gps = exact_gps(build_filter("ekf", "gp", models))
+    return sum(g.alpha.shape[1] ** 2 * g.output_dim for g in gps), sum(g.inverse_blocks().nbytes for g in gps)
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
@@ -108,6 +128,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             for name, v in (("state", "state"), ("belief", "belief"))
         }
         env_ms = {v: env_step_ms(v, tmp, n_batched, 50 if args.smoke else 400) for v in ("state", "belief")}
+        flops, nbytes = variance_cost(tmp)
     for name, r in rates.items():
         print(f"PPO on {name:14s}: {r:8.1f} env steps/s")
     for name, r in batched.items():
@@ -129,13 +150,15 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     state_ms = 1e3 * n_batched / batched["state"]  # one PPO step of all envs, learner included
     with threadpool_limits(1):  # the envs step on one core
         one_core = round(dgemm_gflops(), 1)
-    floor = variance_floor_ms(points, n_batched, OUTPUTS, one_core)
+    floor = 1e3 * n_batched * flops / (one_core * 1e9)  # ms
     out.update({
         "batched_env_state_ms": round(env_ms["state"], 3),
         "batched_env_belief_ms": round(env_ms["belief"], 3),
         "filter_ms": round(env_ms["belief"] - env_ms["state"], 3),
         "dgemm_gflops_one_core": one_core,
         "variance_floor_ms": round(floor, 3),
+        "variance_read_mb": round(nbytes / 1e6, 2),  # read once per batched step, from memory when cold
+        "variance_read_floor_ms": round(1e3 * nbytes / (out["read_gbs"] * 1e9), 3),
         "filter_to_floor_ratio": round((env_ms["belief"] - env_ms["state"]) / floor, 1),
         "ratio_at_floor": round(state_ms / (state_ms + floor), 3),
     })  # fmt: skip

@@ -195,7 +195,32 @@ def test_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(querie
     fast = ExactGP.from_theta(x, y, theta, xs, ys)
     slow = ExactGP(fast.x_scaler, fast.y_scaler, fast.theta, fast.x_train, fast.chol_t, fast.alpha,
                    inverse=False)  # fmt: skip
-    assert fast.inverse_factors()[0] is not None  # well enough conditioned to be used
+    assert fast.inverse_blocks().has_factor[0]  # well enough conditioned to be used
+    q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
+    _same_up_to_rounding(fast, slow, q)
+
+
+@pytest.mark.parametrize("queries", [1, 7, 200])  # one query, all outputs at once, by output
+def test_outputs_with_and_without_an_inverse_factor_match_the_solve(queries: int, monkeypatch) -> None:
+    """A GP whose middle output has no inverse factor (refused, as an ill-conditioned one is):
+    that output solves, the others use the factor's blocks, and every path's variances equal
+    the solve's."""
+    import estimator_service.gp.exact as exact
+
+    refused = iter([False, True, False])
+    real = exact.inverse_factor
+    monkeypatch.setattr(exact, "inverse_factor", lambda l: None if next(refused) else real(l))
+    rng = np.random.default_rng(12)
+    x = rng.uniform(-2, 2, (300, 3))
+    y = np.stack([np.sin(x[:, 0]), np.cos(x[:, 1]), x[:, 2] ** 2], axis=1)
+    xs, ys = identity_scalers(3, 3)
+    theta = np.array([[math.log(0.9), math.log(1.2), math.log(1.5), 0.0, 0.5 * math.log(n2)]
+                      for n2 in (4e-7, 1e-4, 1e-2)])  # fmt: skip
+    fast = ExactGP.from_theta(x, y, theta, xs, ys)
+    slow = ExactGP(fast.x_scaler, fast.y_scaler, fast.theta, fast.x_train, fast.chol_t, fast.alpha,
+                   inverse=False)  # fmt: skip
+    assert fast.inverse_blocks().has_factor.tolist() == [True, False, True]
+    assert not fast.inverse_blocks().blocks[-1][1].any()  # nothing held for the refused output
     q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
     _same_up_to_rounding(fast, slow, q)
 

@@ -17,27 +17,24 @@ from estimator_service.gp.base import (
     check_training_data,
 )
 from estimator_service.gp.hyper import initial_thetas, learn_thetas, random_subset
+from estimator_service.gp.inverse import InverseBlocks
 from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta
-from estimator_service.gp.linalg import (
-    chol_solve,
-    inverse_factor,
-    inverse_sq_norms,
-    robust_cholesky,
-    tri_mult,
-    tri_solve,
-)
+from estimator_service.gp.linalg import chol_solve, inverse_factor, robust_cholesky, tri_solve
 from estimator_service.gp.parallel import over_outputs
 from estimator_service.reprs import short_repr
 
 __all__ = ["ExactGP", "fit_exact", "unscale"]
 
 FloatArray = NDArray[np.float64]
-#: queries from which a prediction with variances goes output by output over threads, the
-#: variance by row blocks of ``L^-1`` (n = 900, d = 15, 12 outputs, this 2-core machine, whole
-#: prediction, before -> after: 8 queries 12.3 -> 8.6 ms, 25: 19.2 -> 9.8, 64: 53.9 -> 16.7,
-#: 2,000: 768 -> 537); one query stays on one triangular product per output (3.9 ms, against
-#: 7.2 output by output)
-BY_OUTPUT_MIN_QUERIES = 2
+#: more queries than this, a prediction with variances goes output by output over threads
+#: (kernel block, mean, variance by the inverse factor's row blocks); up to it, all outputs at
+#: once: one kernel block, one stacked product per row block
+#: (:meth:`~estimator_service.gp.inverse.InverseBlocks.sq_norms`). 12 outputs, d = 16, whole
+#: latent prediction, ms, by output -> all at once, one core / two: n = 300, 16 queries:
+#: 1.69 -> 0.98 / 2.42 -> 1.16; 64 queries: 4.97 -> 3.72 / 3.99 -> 3.69; n = 900, 16 queries:
+#: 11.8 -> 12.7 / 9.3 -> 8.5; 64: 26.7 -> 27.7 / 14.9 -> 18.8; 2,000 queries, two cores:
+#: 71 -> 92 (n = 300), 347 -> 403 (n = 900)
+STACKED_MAX_QUERIES = 32
 _CHUNK_BYTES = 256 * 2**20  # cap on the (P, M, n) kernel block held at once
 
 
@@ -64,10 +61,9 @@ class ExactGP:
     inverse: bool
         Predictive variances from the explicit inverse factors ``L^-1`` (computed once, on
         the first variance request, per output whose factor is well conditioned; see
-        :func:`~estimator_service.gp.linalg.inverse_factor`): one triangular product for one
-        query, row blocks of matrix products for more (:data:`BY_OUTPUT_MIN_QUERIES`),
-        instead of a triangular solve. ``tests/test_gp.py`` bounds the difference on a
-        near-noiseless GP.
+        :func:`~estimator_service.gp.linalg.inverse_factor`), held as stacked row blocks
+        (:class:`~estimator_service.gp.inverse.InverseBlocks`), instead of a triangular
+        solve. ``tests/test_gp.py`` bounds the difference on a near-noiseless GP.
     """
 
     __repr__ = short_repr
@@ -83,7 +79,7 @@ class ExactGP:
     inverse: bool = True
 
     _kernel: CrossKernel = field(init=False, repr=False)
-    _linv: list = field(init=False, repr=False)
+    _linv: list = field(init=False, repr=False)  # [InverseBlocks] once computed
 
     def __post_init__(self) -> None:
         for arr in (self.theta, self.x_train, self.chol_t, self.alpha):
@@ -91,15 +87,12 @@ class ExactGP:
         object.__setattr__(self, "_kernel", CrossKernel.build(self.x_train, self.theta, self.alpha))
         object.__setattr__(self, "_linv", [])  # filled on the first variance request
 
-    def inverse_factors(self) -> list[FloatArray | None]:
-        """Per output, ``L^-1 (n, n)`` (Fortran, lower) or None where the solve is kept."""
+    def inverse_blocks(self) -> InverseBlocks:
+        """The outputs' ``L^-1`` as row blocks (computed on the first call, then held)."""
         if not self._linv:  # once; a race only computes the same factors twice
             factors = [inverse_factor(self.chol_t[p].T) for p in range(self.output_dim)]
-            for f in factors:
-                if f is not None:
-                    f.flags.writeable = False
-            self._linv[:] = factors
-        return self._linv
+            self._linv[:] = [InverseBlocks.from_factors(factors, self.alpha.shape[1])]
+        return self._linv[0]
 
     @classmethod
     def from_theta(
@@ -154,22 +147,25 @@ class ExactGP:
             return tuple(
                 None if parts[0][j] is None else np.concatenate([q[j] for q in parts]) for j in range(3)
             )  # type: ignore[return-value]
-        if return_var and xs.shape[0] >= BY_OUTPUT_MIN_QUERIES:
+        if return_var and xs.shape[0] > STACKED_MAX_QUERIES:
             return self._latent_by_output(xs, return_jac)
         ks, mean, jac = self._kernel(xs, return_jac)
-        var = None
-        if return_var:  # one query: the factors are streamed once, output after output
-            sf2 = np.exp(2.0 * self.theta[:, -2])
-            var = np.empty_like(mean)
-            inv = self.inverse_factors() if self.inverse else [None] * p_out
-            for p in range(p_out):
-                if inv[p] is not None:
-                    v = tri_mult(inv[p], ks[p].T, overwrite_b=True)
-                else:
-                    v = tri_solve(self.chol_t[p].T, ks[p].T, overwrite_b=True)
-                var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)
-            np.maximum(var, 0.0, out=var)
-        return mean, var, jac
+        return mean, self._variance(ks) if return_var else None, jac
+
+    def _variance(self, ks: FloatArray) -> FloatArray:
+        """Latent variances ``(M, P)`` from the kernel block ``ks (P, M, n)`` (overwritten for
+        outputs that solve): the inverse factors' blocks for all outputs, the triangular
+        solve for outputs without a factor."""
+        if self.inverse:
+            inv = self.inverse_blocks()
+            sq, solve = inv.sq_norms(ks), np.flatnonzero(~inv.has_factor)
+        else:
+            sq, solve = np.zeros(ks.shape[:2]), np.arange(self.output_dim)
+        for p in solve:
+            v = tri_solve(self.chol_t[p].T, ks[p].T, overwrite_b=True)
+            sq[p] = np.einsum("nm,nm->m", v, v)
+        sf2 = np.exp(2.0 * self.theta[:, -2])
+        return np.maximum(sf2[:, None] - sq, 0.0).T
 
     def _latent_by_output(
         self, xs: FloatArray, return_jac: bool
@@ -181,7 +177,7 @@ class ExactGP:
         mean, var = np.empty((xs.shape[0], p_out)), np.empty((xs.shape[0], p_out))
         jac = np.empty((xs.shape[0], p_out, xs.shape[1])) if return_jac else None
         sf2 = np.exp(2.0 * self.theta[:, -2])
-        inv = self.inverse_factors() if self.inverse else [None] * p_out
+        inv = self.inverse_blocks() if self.inverse else None
         kern = self._kernel
 
         def one(p: int) -> None:
@@ -189,8 +185,8 @@ class ExactGP:
             mean[:, p] = k @ self.alpha[p]
             if jac is not None:
                 jac[:, p] = (k @ kern.weighted_centres[p] - xs * mean[:, p, None]) / kern.ell[p] ** 2
-            if inv[p] is not None:
-                var[:, p] = sf2[p] - inverse_sq_norms(k, inv[p])
+            if inv is not None and inv.has_factor[p]:
+                var[:, p] = sf2[p] - inv.sq_norms_one(k, p)
             else:
                 v = tri_solve(self.chol_t[p].T, k.T, overwrite_b=True)
                 var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)

@@ -18,10 +18,8 @@ __all__ = [
     "chol_inverse",
     "chol_solve",
     "inverse_factor",
-    "inverse_sq_norms",
     "robust_cholesky",
     "single_threaded_blas",
-    "tri_mult",
     "tri_solve",
 ]
 
@@ -126,37 +124,6 @@ def inverse_factor(l_fortran: FloatArray, max_cond: float = MAX_INVERSE_COND) ->
     if info != 0 or not np.all(np.isfinite(inv)):
         return None
     return np.asfortranarray(np.tril(inv))
-
-
-def tri_mult(l_fortran: FloatArray, b: FloatArray, overwrite_b: bool = False) -> FloatArray:
-    """``L B`` for lower-triangular ``L (n, n)`` and ``B (n, M)`` (BLAS ``trmv``/``trmm``: the
-    zero half of ``L`` is never read). With ``L = (L_chol)^-1`` this replaces :func:`tri_solve`
-    by a product, whose rows are independent (no dependent recurrence as in a solve)."""
-    if b.shape[1] == 1:
-        return blas.dtrmv(l_fortran, b[:, 0], lower=1, overwrite_x=int(overwrite_b))[:, None]
-    return blas.dtrmm(1.0, l_fortran, b, lower=1, overwrite_b=int(overwrite_b))
-
-
-#: rows of ``L^-1`` per block in :func:`inverse_sq_norms` (n = 900: 150 -> 6 blocks, 17 %
-#: more flops than the triangle, at matrix-multiply speed; one core, 2,000 queries: 60.5 ms
-#: against 68.5 ms for the triangular solve, 100-300 rows within 12 %)
-ROW_BLOCK = 150
-
-
-def inverse_sq_norms(k: FloatArray, l_inv: FloatArray, block: int = ROW_BLOCK) -> FloatArray:
-    """``|L^-1 k_q|^2 (M,)`` for the rows ``k_q`` of ``k (M, n)``, given ``L^-1`` (lower).
-
-    The triangle is covered by row blocks of ``L^-1`` (each a plain matrix product over the
-    columns up to its diagonal, which releases the GIL, unlike SciPy's triangular wrappers),
-    and the squares are summed block by block, so ``L^-1 k^T`` is never held whole.
-    """
-    out = np.zeros(k.shape[0])
-    n = l_inv.shape[0]
-    for r0 in range(0, n, block):
-        r1 = min(r0 + block, n)
-        v = k[:, :r1] @ l_inv[r0:r1, :r1].T
-        out += np.einsum("qm,qm->q", v, v)
-    return out
 
 
 def chol_solve(l: FloatArray, b: FloatArray) -> FloatArray:
