@@ -6,7 +6,10 @@ Models come from a short scripted flight (``--quick``: 3 minutes, 300 GP points;
 GP-EKF for the belief variant; target belief >= 0.5x state), and 16 envs in the batched
 belief env with the committed PPO hyperparameters (native batched simulator, one batched
 GP-EKF step for all blimps; target ``batched_belief_to_state_ratio`` >= 0.8 with the exact
-GP). The last output line is one JSON object.
+GP). Where the filter's time goes is set against the machine: ``variance_floor_ms`` is the
+exact GPs' variance flops (``n^2`` per query and output, each GP with its own ``n``) at the
+one-core dgemm rate, ``variance_read_floor_ms`` the inverse-factor blocks a batched step
+reads (``variance_read_mb``) at the read bandwidth. The last output line is one JSON object.
 """
 
 from __future__ import annotations
