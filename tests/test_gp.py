@@ -225,6 +225,25 @@ def test_outputs_with_and_without_an_inverse_factor_match_the_solve(queries: int
     _same_up_to_rounding(fast, slow, q)
 
 
+def test_threaded_inverse_blocks_give_the_same_numbers(monkeypatch) -> None:
+    """Outputs split over two threads (large blocks) give what one stacked call gives."""
+    from threadpoolctl import threadpool_limits
+
+    import estimator_service.gp.inverse as inverse
+
+    rng = np.random.default_rng(13)
+    factors = [np.tril(rng.normal(size=(40, 40))) for _ in range(5)]
+    blocks = inverse.InverseBlocks.from_factors([*factors[:2], None, *factors[2:]], 40)
+    ks = rng.normal(size=(6, 3, 40))
+    monkeypatch.setattr(inverse, "THREADED_MIN_BYTES", 0)
+    with threadpool_limits(2):
+        threaded = blocks.sq_norms_threaded(ks)
+    np.testing.assert_array_equal(threaded, blocks.sq_norms(ks))
+    direct = [np.sum((f @ k.T) ** 2, axis=0) for f, k in zip(factors, ks[[0, 1, 3, 4, 5]], strict=True)]
+    np.testing.assert_allclose(threaded[[0, 1, 3, 4, 5]], direct, rtol=1e-12)
+    assert not threaded[2].any()
+
+
 def test_inverse_factor_refuses_an_ill_conditioned_factor() -> None:
     from estimator_service.gp.linalg import inverse_factor
 

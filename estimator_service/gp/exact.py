@@ -158,7 +158,7 @@ class ExactGP:
         solve for outputs without a factor."""
         if self.inverse:
             inv = self.inverse_blocks()
-            sq, solve = inv.sq_norms(ks), np.flatnonzero(~inv.has_factor)
+            sq, solve = inv.sq_norms_threaded(ks), np.flatnonzero(~inv.has_factor)
         else:
             sq, solve = np.zeros(ks.shape[:2]), np.arange(self.output_dim)
         for p in solve:
