@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from estimator_service.gp.linalg import blas_threads
 from estimator_service.gp.parallel import over_outputs
+from estimator_service.reprs import short_repr
 
 __all__ = ["BLOCKS", "THREADED_MIN_BYTES", "InverseBlocks"]
 
@@ -53,6 +54,8 @@ class InverseBlocks:
     has_factor: (P,)
         Outputs whose factor is held; the others are left to the caller's solve.
     """
+
+    __repr__ = short_repr
 
     blocks: tuple[FloatArray, ...]
     edges: tuple[int, ...]
