@@ -233,11 +233,16 @@ def test_threaded_inverse_blocks_give_the_same_numbers(monkeypatch) -> None:
 
     rng = np.random.default_rng(13)
     factors = [np.tril(rng.normal(size=(40, 40))) for _ in range(5)]
-    blocks = inverse.InverseBlocks.from_factors([*factors[:2], None, *factors[2:]], 40)
+    blocks = inverse.InverseBlocks.from_factors([*factors[:2], None, *factors[2:]], 6, 40)
     ks = rng.normal(size=(6, 3, 40))
     monkeypatch.setattr(inverse, "THREADED_MIN_BYTES", 0)
+    monkeypatch.setattr(inverse, "blas_threads", lambda: 2)  # the split, on any machine
+    groups = []
+    real = inverse.over_outputs
+    monkeypatch.setattr(inverse, "over_outputs", lambda fn, w: groups.append(w) or real(fn, w))
     with threadpool_limits(2):
         threaded = blocks.sq_norms_threaded(ks)
+    assert groups == [2]
     np.testing.assert_array_equal(threaded, blocks.sq_norms(ks))
     direct = [np.sum((f @ k.T) ** 2, axis=0) for f, k in zip(factors, ks[[0, 1, 3, 4, 5]], strict=True)]
     np.testing.assert_allclose(threaded[[0, 1, 3, 4, 5]], direct, rtol=1e-12)

@@ -90,8 +90,8 @@ class ExactGP:
     def inverse_blocks(self) -> InverseBlocks:
         """The outputs' ``L^-1`` as row blocks (computed on the first call, then held)."""
         if not self._linv:  # once; a race only computes the same factors twice
-            factors = [inverse_factor(self.chol_t[p].T) for p in range(self.output_dim)]
-            self._linv[:] = [InverseBlocks.from_factors(factors, self.alpha.shape[1])]
+            factors = (inverse_factor(self.chol_t[p].T) for p in range(self.output_dim))
+            self._linv[:] = [InverseBlocks.from_factors(factors, self.output_dim, self.alpha.shape[1])]
         return self._linv[0]
 
     @classmethod
@@ -186,7 +186,7 @@ class ExactGP:
             if jac is not None:
                 jac[:, p] = (k @ kern.weighted_centres[p] - xs * mean[:, p, None]) / kern.ell[p] ** 2
             if inv is not None and inv.has_factor[p]:
-                var[:, p] = sf2[p] - inv.sq_norms_one(k, p)
+                var[:, p] = sf2[p] - inv.sq_norms(k[None], slice(p, p + 1))[0]
             else:
                 v = tri_solve(self.chol_t[p].T, k.T, overwrite_b=True)
                 var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)

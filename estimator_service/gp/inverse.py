@@ -18,6 +18,7 @@ work on contiguous blocks 0.73 ms; one query, n = 300: 12 triangular products (`
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,19 +63,22 @@ class InverseBlocks:
     has_factor: NDArray[np.bool_]
 
     @classmethod
-    def from_factors(cls, factors: list[FloatArray | None], n: int, blocks: int = BLOCKS) -> InverseBlocks:
-        """From per-output lower factors ``(n, n)`` or None (no factor for that output)."""
+    def from_factors(
+        cls, factors: Iterable[FloatArray | None], outputs: int, n: int, blocks: int = BLOCKS
+    ) -> InverseBlocks:
+        """From ``outputs`` per-output lower factors ``(n, n)`` or None (no factor for that
+        output), taken one at a time: a generator of factors never holds more than one."""
         edges = tuple(int(e) for e in np.linspace(0, n, max(1, min(blocks, n)) + 1))
-        parts = []
-        for r0, r1 in itertools.pairwise(edges):
-            part = np.zeros((len(factors), r1 - r0, r1))
-            for p, f in enumerate(factors):
-                if f is not None:
-                    part[p] = f[r0:r1, :r1]
-            part.flags.writeable = False
-            parts.append(part)
-        has = np.array([f is not None for f in factors], dtype=bool)
-        has.flags.writeable = False
+        parts = [np.zeros((outputs, r1 - r0, r1)) for r0, r1 in itertools.pairwise(edges)]
+        has = np.zeros(outputs, dtype=bool)
+        for p, f in enumerate(itertools.islice(factors, outputs)):
+            if f is None:
+                continue
+            has[p] = True
+            for (r0, r1), part in zip(itertools.pairwise(edges), parts, strict=True):
+                part[p] = f[r0:r1, :r1]
+        for arr in (*parts, has):
+            arr.flags.writeable = False
         return cls(tuple(parts), edges, has)
 
     @property
@@ -108,12 +112,4 @@ class InverseBlocks:
             out[sl] = self.sq_norms(ks[sl], sl)
 
         over_outputs(group, w)
-        return out
-
-    def sq_norms_one(self, k: FloatArray, p: int) -> FloatArray:
-        """``|L_p^-1 k_q|^2 (M,)`` of output ``p`` from its kernel rows ``k (M, n)``."""
-        out = np.zeros(k.shape[0])
-        for r1, part in zip(self.edges[1:], self.blocks, strict=True):
-            v = k[:, :r1] @ part[p].T
-            out += np.einsum("qr,qr->q", v, v)
         return out
