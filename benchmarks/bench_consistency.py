@@ -34,6 +34,7 @@ from agents.sim import collect_flight
 from estimator_service.calibrate import calibrate_all, calibration_rows
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
+from estimator_service.store import seal
 from estimator_service.tracking import aggregate_rms, track_flight
 from estimator_service.training import TrainSettings, train_models
 from gpbf_env.params import BlimpParams
@@ -61,6 +62,7 @@ def baseline(train: Flight, folder: Path, kinds: tuple[str, ...], s: TrainSettin
     """Models trained on all of ``train``, calibrated in-sample on its start."""
     train_models([train], folder, kinds=list(kinds), settings=dataclasses.replace(s, calibration_seconds=0))
     calibrate_all(train, folder, kinds, rows=calibration_rows(train, s.calibration_seconds))
+    seal(folder, train.system)  # calibrated in place after training sealed it
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:

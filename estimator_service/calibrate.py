@@ -31,7 +31,11 @@ from estimator_service.matching import (
     covering_factor,
     match_scales,
 )
-from estimator_service.models.calibration import read_observation_scales, read_process_scales
+from estimator_service.models.calibration import (
+    read_observation_scales,
+    read_process_ceiling,
+    read_process_scales,
+)
 
 __all__ = [
     "NOISE_DETAILS",
@@ -174,7 +178,8 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
         pred, cam = apply_calibration(folder, kind, *raw, process=False)  # observation scales only
         start = read_process_scales(folder).get(kind, np.ones(pred.state_dim))
         scales = read_observation_scales(folder).get(kind)
-        res[kind] = noise_from_blocks([Block(flight, rows, pred, cam)], start, scales, rounds, max_step)
+        block = Block(flight, rows, pred, cam, read_process_ceiling(folder, pred.state_dim))
+        res[kind] = noise_from_blocks([block], start, scales, rounds, max_step)
     write_calibration(
         folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
         {k: v.details for k, v in res.items()}, calibration_rows=[rows.start, rows.stop],

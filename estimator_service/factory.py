@@ -24,6 +24,7 @@ from estimator_service.models.calibration import (
     NoiseScaledPrediction,
     read_noise_scales,
     read_observation_scales,
+    read_process_ceiling,
     read_process_scales,
 )
 from estimator_service.models.gp_models import (
@@ -100,13 +101,16 @@ def apply_calibration(
     *, process: bool = True,
 ) -> tuple[PredictionModel, ObservationModel]:  # fmt: skip
     """``pred`` and ``obs`` with the noise scales of ``folder/calibration.json`` for ``kind``
-    (where there are any); ``process=False`` leaves the prediction noise as it is."""
+    (where there are any) and the process-variance ceiling (where there is one);
+    ``process=False`` leaves the prediction noise as it is."""
     scale = read_noise_scales(folder).get(kind, 1.0) if process else 1.0
     if process and kind in (per_output := read_process_scales(folder)):
         scale = scale * per_output[kind]
+    ceiling = read_process_ceiling(folder, pred.state_dim) if process else None
     obs_scale = read_observation_scales(folder).get(kind)
+    plain = ceiling is None and np.all(np.asarray(scale) == 1.0)
     return (
-        pred if np.all(np.asarray(scale) == 1.0) else NoiseScaledPrediction(pred, scale),
+        pred if plain else NoiseScaledPrediction(pred, scale, ceiling),
         obs if obs_scale is None else NoiseScaledObservation(obs, obs_scale),
     )
 

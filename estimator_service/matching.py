@@ -54,20 +54,22 @@ COVERAGE_FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
 @dataclass(frozen=True)
 class Block:
     """Rows ``rows`` of ``flight`` and models (calibrated observation noise, raw prediction
-    noise) that never saw them."""
+    noise) that never saw them, with the models' process-variance ceiling ``(n,)`` (None:
+    none), which applies to every scale tried on the block as it will in the filter."""
 
     flight: Flight
     rows: slice
     prediction: PredictionModel
     observation: ObservationModel
+    ceiling: FloatArray | None = None
 
 
 def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackResult | None:
     """The plain EKF over the block (the adaptive one would hide what is calibrated here),
-    its process noise scaled by ``scale * factor (n,)`` and its observation noise by
-    ``factor``; None when the filter's covariance blew up (not finite, or at some step no
-    longer factorable, which the filter flags as divergence and carries on), which the
-    callers count as a block the scales do not cover."""
+    its process noise scaled by ``scale * factor (n,)`` (capped at the block's ceiling) and
+    its observation noise by ``factor``; None when the filter's covariance blew up (not
+    finite, or at some step no longer factorable, which the filter flags as divergence and
+    carries on), which the callers count as a block the scales do not cover."""
     from estimator_service.factory import make_filter
     from estimator_service.models.calibration import NoiseScaledObservation, NoiseScaledPrediction
     from estimator_service.tracking import track_flight
@@ -75,7 +77,7 @@ def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackRe
     obs = block.observation
     if factor != 1.0:
         obs = NoiseScaledObservation(obs, np.full(obs.obs_dim, factor))
-    pred = NoiseScaledPrediction(block.prediction, scale * factor)
+    pred = NoiseScaledPrediction(block.prediction, scale * factor, block.ceiling)
     filt = make_filter("ekf", pred, obs, system=block.flight.system, adapt_rate=0.0)
     try:
         with np.errstate(all="ignore"):

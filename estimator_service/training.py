@@ -38,6 +38,7 @@ from estimator_service.gp import (
     load_gp,
     save_gp,
 )
+from estimator_service.models.calibration import write_process_ceiling
 from estimator_service.store import writing
 from estimator_service.system import System
 
@@ -207,7 +208,10 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
                 on_progress, exclude, reuse: Path | None = None) -> dict[str, float]:  # fmt: skip
     """Fit and save every kind in ``kinds`` on all of ``flights``; seconds per kind. With
     ``reuse`` (a folder of models of the same kinds) the GPs keep that folder's
-    hyperparameters and are only conditioned on ``flights``' data (no optimisation)."""
+    hyperparameters and are only conditioned on ``flights``' data (no optimisation). The
+    flights' state variances are stored as the process-variance ceiling
+    (:mod:`estimator_service.models.calibration`)."""
+    write_process_ceiling(out, np.concatenate([f.state for f in flights]))
     rng = np.random.default_rng([seed, 0])
     timings: dict[str, float] = {}
     n = system.state_dim

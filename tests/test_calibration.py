@@ -31,6 +31,7 @@ from estimator_service.models.calibration import (
     read_observation_scales,
     write_noise_scales,
 )
+from estimator_service.store import seal
 from estimator_service.training import TrainSettings, train_models
 
 
@@ -72,12 +73,14 @@ def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path
     assert read_noise_scales(tmp_path) == {}  # calibration_seconds = 0 skips it
     calibrate_observation_scales = calibrate_observation(flight, tmp_path, ["param"], rows=rows)["param"]
     one_step = calibrate_process(flight, tmp_path, ["param"], rows=rows)["param"]
+    seal(tmp_path, flight.system)  # calibrated in place: the folder's manifest again
     pred, _ = load_models(tmp_path, "param", calibrated=False)
     x, u, x1 = flight.select(np.arange(rows.stop)).transitions()
     out = pred.predict(x, u)
     r = flight.system.wrapping().state_diff(flight.system.state_error(x1, x) - out.mean)
     np.testing.assert_allclose(one_step, np.clip(np.mean(r * r / out.var, axis=0), 0.1, 1e4), rtol=1e-9)
     chosen = calibrate_noise(flight, tmp_path, ["param"], rows=rows)["param"]
+    seal(tmp_path, flight.system)
     noise = json.loads((tmp_path / CALIBRATION_FILE).read_text())["details"][NOISE_DETAILS]["param"]
     first, last = (np.abs(np.log(noise["matching"][k]["e2_over_var"])) for k in (0, -1))
     assert np.median(last) < np.median(first)  # each output's spread nearer its errors
@@ -203,6 +206,7 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
     s = TrainSettings(n_points=60, restarts=1, max_iter=5, calibration_seconds=0)
     train_models([held], tmp_path, kinds=["param"], settings=s, seed=0)
     chosen = calibrate_observation(flight, tmp_path, ["param"], rows=rows, floor=1e-6)["param"]
+    seal(tmp_path, flight.system)
     _, cam = load_models(tmp_path, "param", calibrated=False)
     fl = flight.select(np.arange(80))
     for j in range(10):  # independently: camera j // 5, ellipse field j % 5
@@ -213,6 +217,7 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
             r = (r + np.pi / 2) % np.pi - np.pi / 2
         assert chosen[j] == pytest.approx(min(np.mean(r * r / out.var[:, j]), 100.0), rel=1e-9)  # cap 100
     calibrate_observation(flight, tmp_path, ["param"], rows=rows)  # the default floor 1 never narrows
+    seal(tmp_path, flight.system)
     _, obs = load_models(tmp_path, "param")
     assert isinstance(obs, NoiseScaledObservation)
     np.testing.assert_allclose(obs.scale, np.maximum(chosen, 1.0))

@@ -10,13 +10,19 @@ blocks of the training flight with models fitted without them (cross-fitting,
 the models in ``calibration.json`` (``noise_scale`` times ``process_noise_scale``) and
 applied by :func:`estimator_service.factory.load_models`.
 
-Observation GPs are overconfident in another way: their variance is smallest on their own
-training frames, and held-out states lie between them (paper-size GP, first held-out blimp
-block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
-camera).
-A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
-particles (:func:`estimator_service.calibrate.calibrate_observation` measures it on blocks of
-the training flight, with observation models fitted without them; one scale per output).
+The scaled process variance is capped per output at :data:`CEILING_FACTOR` times the
+variance of that state output over the training flights (``process_variance_ceiling``,
+written by :func:`estimator_service.training.train_models`). One prediction that makes the
+belief wider than everything the state did in training says the model knows less than
+nothing (the law of total variance bounds the mean conditional variance by the marginal
+one); the matching gets far past that only when an output's errors grow with its noise,
+and the EKF's linearisation then fails. Measured (lab world, paper-size reproduce): on
+seed 0's fold 3 the hetGP's roll rate was matched to 548 times its one-step variance
+(process std 6.4 rad/s per step against the state's spread of 0.033 rad/s, up to 122 times
+its variance) and the hetGP-EKF diverged (position error 1.2e51 m); the largest legitimate
+excess seen was the parametric model's roll angle on seed 1's fold 0, up to 2.5 times the
+state's variance, which the calibration needs (the parametric model has no roll physics),
+hence a factor of 10 rather than 1.
 """
 
 from __future__ import annotations
@@ -35,32 +41,42 @@ from estimator_service.reprs import short_repr
 
 __all__ = [
     "CALIBRATION_FILE",
+    "CEILING_FACTOR",
+    "PROCESS_CEILING",
     "NoiseScaledObservation",
     "NoiseScaledPrediction",
     "read_details",
     "read_noise_scales",
     "read_observation_scales",
+    "read_process_ceiling",
     "read_process_scales",
     "write_noise_scales",
+    "write_process_ceiling",
 ]
 
 FloatArray = NDArray[np.float64]
 CALIBRATION_FILE = "calibration.json"
+PROCESS_CEILING = "process_variance_ceiling"  # calibration.json key: (n,) variances
+CEILING_FACTOR = 10.0  # the ceiling in units of each state output's variance in training
 
 
 @dataclass(frozen=True)
 class NoiseScaledPrediction:
-    """``inner`` with its noise variance multiplied by ``scale`` (mean and Jacobian as is)."""
+    """``inner`` with its noise variance multiplied by ``scale`` and capped per output at
+    ``ceiling (n,)`` when given (mean and Jacobian as is)."""
 
     __repr__ = short_repr
 
     inner: PredictionModel
     scale: float | FloatArray
+    ceiling: FloatArray | None = None
 
     def __post_init__(self) -> None:
         s, n = np.asarray(self.scale, dtype=np.float64), self.inner.state_dim
         if s.ndim > 1 or (s.ndim == 1 and s.shape != (n,)) or not np.all(np.isfinite(s) & (s > 0)):
             raise ValueError(f"noise scale must be finite and > 0, one number or {n} of them, got {s!r}")
+        if self.ceiling is not None:
+            object.__setattr__(self, "ceiling", _ceiling(self.ceiling, n))
 
     @property
     def state_dim(self) -> int:
@@ -71,9 +87,21 @@ class NoiseScaledPrediction:
         return self.inner.control_dim
 
     def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
-        """``inner.predict`` with ``var * scale``: mean ``(M, n)``, var ``(M, n)``, jac ``(M, n, n)``."""
+        """``inner.predict`` with ``min(var * scale, ceiling)``: mean ``(M, n)``, var ``(M, n)``,
+        jac ``(M, n, n)``."""
         out = self.inner.predict(x, u, jac=jac, var=var)
-        return ModelOutput(out.mean, out.var * self.scale, out.jac)
+        var_out = out.var * self.scale
+        if self.ceiling is not None:
+            var_out = np.minimum(var_out, self.ceiling)
+        return ModelOutput(out.mean, var_out, out.jac)
+
+
+def _ceiling(value: object, n: int) -> FloatArray:
+    """``value`` as ``n`` finite variances > 0 (a ValueError naming the field otherwise)."""
+    c = np.asarray(value, dtype=np.float64)
+    if c.shape != (n,) or not np.all(np.isfinite(c) & (c > 0)):
+        raise ValueError(f"{PROCESS_CEILING} must be {n} finite variances > 0, got {value!r}")
+    return c
 
 
 @dataclass(frozen=True)
@@ -167,6 +195,27 @@ def read_process_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]
     )
 
 
+def read_process_ceiling(folder: str | os.PathLike[str], n: int) -> FloatArray | None:
+    """The per-output process-variance ceiling ``(n,)`` of ``folder/calibration.json``, or
+    None when it has none (models trained before it existed)."""
+    raw = _read(folder).get(PROCESS_CEILING)
+    if raw is None:
+        return None
+    try:
+        return _ceiling(raw, n)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{os.fspath(Path(folder) / CALIBRATION_FILE)!r}: {e}") from e
+
+
+def write_process_ceiling(folder: str | os.PathLike[str], states: FloatArray) -> Path:
+    """Store :data:`CEILING_FACTOR` times the variance of each state output over the training
+    ``states (T, n)`` as the process-variance ceiling of ``folder/calibration.json`` (merged,
+    written atomically)."""
+    variance = CEILING_FACTOR * np.var(np.asarray(states, dtype=np.float64), axis=0)
+    body = {**_read(folder), PROCESS_CEILING: _ceiling(variance, variance.shape[0]).tolist()}
+    return atomic_write_text(Path(folder) / CALIBRATION_FILE, json.dumps(body, indent=2, default=_plain))
+
+
 def write_noise_scales(
     folder: str | os.PathLike[str],
     scales: dict[str, float],
@@ -183,8 +232,9 @@ def write_noise_scales(
                            ("process_noise_scale", process, read_process_scales)):  # fmt: skip
         vectors[key] = {k: v.tolist() for k, v in read(folder).items()}
         vectors[key].update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (new or {}).items()})
-    old = _read(folder).get("details", {})
-    body = {"noise_scale": merged, **vectors, "details": {**old, **details}}
+    old = _read(folder)
+    kept = {PROCESS_CEILING: old[PROCESS_CEILING]} if PROCESS_CEILING in old else {}
+    body = {"noise_scale": merged, **vectors, **kept, "details": {**old.get("details", {}), **details}}
     return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
 
 
