@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator_service.files import STALE_AFTER_S, atomic_write_text, current_umask
+from estimator_service.models.calibration import CALIBRATION_FILE
 from estimator_service.system import System, SystemError
 
 __all__ = [
@@ -126,7 +127,8 @@ def read_system(folder: str | os.PathLike[str]) -> System:
 
 def check_folder(folder: str | os.PathLike[str], *, hashes: bool = False) -> dict[str, Any]:
     """The folder's manifest, after checking that every listed file is there with its size
-    (and, with ``hashes``, its SHA-256) and that no model file is unlisted."""
+    (and, with ``hashes``, its SHA-256) and that no model file and no noise calibration is
+    unlisted."""
     folder = Path(folder)
     where = f"model folder {os.fspath(folder)!r}"
     if not folder.is_dir():
@@ -150,6 +152,8 @@ def check_folder(folder: str | os.PathLike[str], *, hashes: bool = False) -> dic
         if not p.is_file() or p.stat().st_size != info["bytes"] or (hashes and _sha256(p) != info["sha256"]):
             raise ModelStoreError(f"{where}: {name} is missing or differs from the manifest: retrain it")
     extra = sorted(p.name for p in folder.glob("*.npz") if p.name not in files)
+    if (folder / CALIBRATION_FILE).exists() and CALIBRATION_FILE not in files:
+        extra.append(CALIBRATION_FILE)  # noise scales added after sealing would change the models
     if extra:
         raise ModelStoreError(f"{where}: files not in the manifest {extra} (a mixed folder): retrain it")
     return manifest

@@ -115,6 +115,10 @@ def test_model_folder_is_replaced_whole_or_not_at_all(tmp_path: Path) -> None:
     with pytest.raises(ModelStoreError, match="not in the manifest"):
         check_folder(out)
     (out / "prediction_egp.npz").unlink()
+    (out / "calibration.json").write_text('{"noise_scale": {"gp": 100.0}}')  # scales added after sealing
+    with pytest.raises(ModelStoreError, match=r"not in the manifest \['calibration.json'\]"):
+        check_folder(out)
+    (out / "calibration.json").unlink()
     (out / "prediction_gp.npz").write_bytes(b"changed")
     with pytest.raises(ModelStoreError, match="differs"):
         check_folder(out)
