@@ -56,7 +56,7 @@ def test_ceiling_file_round_trip_survives_scale_writes_and_refuses_bad_values(tm
 
 
 def test_a_runaway_process_scale_is_capped_and_the_ekf_stays_on_track(tmp_path: Path) -> None:
-    """A roll-rate process scale of 1e4 (the matching reached 548 on one paper-size hetGP
+    """A roll-rate process scale of 1e4 (the matching reached 875 on one paper-size hetGP
     fold) makes the plain EKF diverge (position error 1e27 m, measured) unless the ceiling
     stored by training caps it; with it the belief stays within half a metre."""
     train, test = collect_flight(120, seed=3), collect_flight(60, seed=4)

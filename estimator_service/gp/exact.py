@@ -162,10 +162,15 @@ class ExactGP:
         else:
             sq, solve = np.zeros(ks.shape[:2]), np.arange(self.output_dim)
         for p in solve:
-            v = tri_solve(self.chol_t[p].T, ks[p].T, overwrite_b=True)
-            sq[p] = np.einsum("nm,nm->m", v, v)
+            sq[p] = self._solved_sq_norms(ks[p], p)
         sf2 = np.exp(2.0 * self.theta[:, -2])
         return np.maximum(sf2[:, None] - sq, 0.0).T
+
+    def _solved_sq_norms(self, k: FloatArray, p: int) -> FloatArray:
+        """``|L_p^-1 k_q|^2 (M,)`` by the triangular solve, for output ``p``'s kernel rows
+        ``k (M, n)`` (overwritten)."""
+        v = tri_solve(self.chol_t[p].T, k.T, overwrite_b=True)
+        return np.einsum("nm,nm->m", v, v)
 
     def _latent_by_output(
         self, xs: FloatArray, return_jac: bool
@@ -188,8 +193,7 @@ class ExactGP:
             if inv is not None and inv.has_factor[p]:
                 var[:, p] = sf2[p] - inv.sq_norms(k[None], slice(p, p + 1))[0]
             else:
-                v = tri_solve(self.chol_t[p].T, k.T, overwrite_b=True)
-                var[:, p] = sf2[p] - np.einsum("nm,nm->m", v, v)
+                var[:, p] = sf2[p] - self._solved_sq_norms(k, p)
 
         over_outputs(one, p_out)
         return mean, np.maximum(var, 0.0, out=var), jac
