@@ -37,9 +37,11 @@ def test_scaled_variance_is_capped_per_output() -> None:
     np.testing.assert_array_equal(b.jac, a.jac)
     np.testing.assert_allclose(b.var, np.minimum(3.0 * a.var, [0.2, 10.0]))
     assert b.var[0, 0] == 0.2 and b.var[0, 1] == 3.0 * a.var[0, 1]
-    for bad in ([0.2], [0.2, 0.0], [0.2, np.inf], [[0.2, 1.0]]):
+    for bad in ([0.2], [0.2, 0.0], [0.2, np.nan], [[0.2, 1.0]]):
         with pytest.raises(ValueError, match=PROCESS_CEILING):
             NoiseScaledPrediction(base, 3.0, np.array(bad))
+    uncapped = NoiseScaledPrediction(base, 3.0, np.array([0.2, np.inf])).predict(x, u)
+    assert uncapped.var[0, 1] == 3.0 * a.var[0, 1]  # inf: that output has no ceiling
 
 
 def test_ceiling_file_round_trip_survives_scale_writes_and_refuses_bad_values(tmp_path: Path) -> None:
@@ -48,6 +50,13 @@ def test_ceiling_file_round_trip_survives_scale_writes_and_refuses_bad_values(tm
     write_process_ceiling(tmp_path, states)
     write_noise_scales(tmp_path, {"gp": 2.0}, process={"gp": np.array([1.0, 3.0])})
     np.testing.assert_allclose(read_process_ceiling(tmp_path, 2), CEILING_FACTOR * states.var(axis=0))
+    body = json.loads((tmp_path / CALIBRATION_FILE).read_text())
+    states[:, 1] = 1.5  # an output that never varied in training gets no ceiling
+    write_process_ceiling(tmp_path, states)
+    assert json.loads((tmp_path / CALIBRATION_FILE).read_text())[PROCESS_CEILING][1] is None
+    np.testing.assert_array_equal(
+        read_process_ceiling(tmp_path, 2), [CEILING_FACTOR * states[:, 0].var(), np.inf]
+    )
     body = json.loads((tmp_path / CALIBRATION_FILE).read_text())
     body[PROCESS_CEILING] = [1.0, -1.0]
     (tmp_path / CALIBRATION_FILE).write_text(json.dumps(body))

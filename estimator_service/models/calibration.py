@@ -107,10 +107,12 @@ class NoiseScaledPrediction:
 
 
 def _ceiling(value: object, n: int) -> FloatArray:
-    """``value`` as ``n`` finite variances > 0 (a ValueError naming the field otherwise)."""
-    c = np.asarray(value, dtype=np.float64)
-    if c.shape != (n,) or not np.all(np.isfinite(c) & (c > 0)):
-        raise ValueError(f"{PROCESS_CEILING} must be {n} finite variances > 0, got {value!r}")
+    """``value`` as ``n`` variances > 0, ``inf`` (JSON ``null``) where an output has no
+    ceiling (a ValueError naming the field otherwise)."""
+    items = [np.inf if v is None else v for v in value] if isinstance(value, list) else value
+    c = np.asarray(items, dtype=np.float64)
+    if c.shape != (n,) or not np.all(~np.isnan(c) & (c > 0)):
+        raise ValueError(f"{PROCESS_CEILING} must be {n} variances > 0 (null: none), got {value!r}")
     return c
 
 
@@ -220,9 +222,11 @@ def read_process_ceiling(folder: str | os.PathLike[str], n: int) -> FloatArray |
 def write_process_ceiling(folder: str | os.PathLike[str], states: FloatArray) -> Path:
     """Store :data:`CEILING_FACTOR` times the variance of each state output over the training
     ``states (T, n)`` as the process-variance ceiling of ``folder/calibration.json`` (merged,
-    written atomically)."""
+    written atomically); an output that never varied in training gets none (``null``)."""
     variance = CEILING_FACTOR * np.var(np.asarray(states, dtype=np.float64), axis=0)
-    body = {**_read(folder), PROCESS_CEILING: _ceiling(variance, variance.shape[0]).tolist()}
+    stored = [float(v) if v > 0 else None for v in variance]
+    _ceiling(stored, variance.shape[0])  # a NaN state is refused before anything is written
+    body = {**_read(folder), PROCESS_CEILING: stored}
     return atomic_write_text(Path(folder) / CALIBRATION_FILE, json.dumps(body, indent=2, default=_plain))
 
 
