@@ -37,9 +37,9 @@ def test_scaled_variance_is_capped_per_output() -> None:
     np.testing.assert_array_equal(b.jac, a.jac)
     np.testing.assert_allclose(b.var, np.minimum(3.0 * a.var, [0.2, 10.0]))
     assert b.var[0, 0] == 0.2 and b.var[0, 1] == 3.0 * a.var[0, 1]
-    for bad in ([0.2], [0.2, 0.0], [0.2, np.nan], [[0.2, 1.0]]):
+    for bad in ([0.2], [0.2, 0.0], [0.2, np.nan], [[0.2, 1.0]], [0.2, "x"], [0.2, [1.0]]):
         with pytest.raises(ValueError, match=PROCESS_CEILING):
-            NoiseScaledPrediction(base, 3.0, np.array(bad))
+            NoiseScaledPrediction(base, 3.0, bad)
     uncapped = NoiseScaledPrediction(base, 3.0, np.array([0.2, np.inf])).predict(x, u)
     assert uncapped.var[0, 1] == 3.0 * a.var[0, 1]  # inf: that output has no ceiling
 

@@ -110,7 +110,10 @@ def _ceiling(value: object, n: int) -> FloatArray:
     """``value`` as ``n`` variances > 0, ``inf`` (JSON ``null``) where an output has no
     ceiling (a ValueError naming the field otherwise)."""
     items = [np.inf if v is None else v for v in value] if isinstance(value, list) else value
-    c = np.asarray(items, dtype=np.float64)
+    try:
+        c = np.asarray(items, dtype=np.float64)
+    except (TypeError, ValueError):
+        c = np.full(n, np.nan)  # not numbers: refused below with the field's name
     if c.shape != (n,) or not np.all(~np.isnan(c) & (c > 0)):
         raise ValueError(f"{PROCESS_CEILING} must be {n} variances > 0 (null: none), got {value!r}")
     return c
