@@ -45,6 +45,9 @@ BLIMP_GROUPS = (
     Group("velocity_mm_s", (6, 7, 8), MM),
     Group("ang_velocity_deg_s", (9, 10, 11), DEG),
 )
+# the body velocities (u, v, w, p, q, r): gusts and a heavier or lighter blimp act on them;
+# the position and angles are their integrals
+BLIMP_DISTURBED = tuple(range(6, 12))
 # a new session's prior: anywhere in the 10 x 6 x 4 m lab, any heading
 PRIOR_MEAN = (5.0, 3.0, 2.0) + (0.0,) * 9
 PRIOR_STD = (3.0, 2.0, 1.5, 0.3, 0.3, math.pi, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5)
@@ -61,7 +64,7 @@ def blimp_system(n_cameras: int = 2, dt: float = 0.25, camera_rate_hz: float | N
     periods = (0.0,) * 3 + (2 * math.pi,) * 3 + (0.0,) * 6
     return System(
         "blimp", BLIMP_STATE, BLIMP_CONTROLS, cams, float(dt), periods, (5,), BLIMP_GROUPS,
-        PRIOR_MEAN, PRIOR_STD, parametric="blimp",
+        PRIOR_MEAN, PRIOR_STD, parametric="blimp", disturbed=BLIMP_DISTURBED,
     )  # fmt: skip
 
 

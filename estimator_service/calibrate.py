@@ -15,6 +15,7 @@ from the flight's :class:`~estimator_service.system.System`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ from estimator_service.matching import (
     MATCH_ROUNDS,
     MATCH_STEP,
     Block,
-    coverage_curve,
+    coverage,
     covering_factor,
     match_scales,
 )
@@ -132,12 +133,14 @@ def calibrate_process(
 class NoiseCalibration:
     """One kind's noise calibration on held-out rows: the matched process scales
     ``matched (n,)``, the observation scales ``observation (m,)`` (None: the models carry
-    none), both before the 3-sigma coverage ``factor``, and what was measured."""
+    none), both before the 3-sigma coverage ``factor``, what was measured, and the EKF's
+    mean NIS/dof with these noises there (``nis_level``; NaN: no update)."""
 
     matched: FloatArray
     observation: FloatArray | None
     factor: float
     details: dict
+    nis_level: float = math.nan
 
     @property
     def process(self) -> FloatArray:
@@ -182,7 +185,8 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
         res[kind] = noise_from_blocks([block], start, scales, rounds, max_step)
     write_calibration(
         folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
-        {k: v.details for k, v in res.items()}, calibration_rows=[rows.start, rows.stop],
+        {k: v.details for k, v in res.items()}, {k: v.nis_level for k, v in res.items()},
+        calibration_rows=[rows.start, rows.stop],
     )  # fmt: skip
     return res
 
@@ -194,10 +198,10 @@ def noise_from_blocks(
     """Process scales matched from ``start (n,)`` and the covering factor on the blocks,
     with the observation scales ``obs_scale (m,)`` the blocks' models carry (or None)."""
     scale, history = match_scales(blocks, start, rounds=rounds, max_step=max_step)
-    curve = coverage_curve(blocks, scale)
+    curve, level = coverage(blocks, scale)
     factor = covering_factor(curve, len(scale))
-    details = {"matching": history, "coverage": curve, "coverage_factor": factor}
-    return NoiseCalibration(scale, obs_scale, factor, details)
+    details = {"matching": history, "coverage": curve, "coverage_factor": factor, "nis_level": level}
+    return NoiseCalibration(scale, obs_scale, factor, details, level)
 
 
 def geometric_mean(values: object, axis: int | None = None) -> FloatArray:
@@ -207,16 +211,19 @@ def geometric_mean(values: object, axis: int | None = None) -> FloatArray:
 
 def write_calibration(
     folder: Path, process: dict[str, FloatArray], observation: dict[str, FloatArray | None],
-    details: dict[str, dict], **extra: object,
+    details: dict[str, dict], nis_levels: dict[str, float], **extra: object,
 ) -> None:  # fmt: skip
     """Write per-kind process scales (as a geometric-mean ``noise_scale`` times per-output
-    scales), observation scales and what each kind's calibration measured."""
+    scales), observation scales, the adaptive filters' NIS/dof reference (the kinds whose
+    ``nis_levels`` are finite and > 0) and what each kind's calibration measured."""
     from estimator_service.models.calibration import write_noise_scales
 
     mean = {k: float(geometric_mean(v)) for k, v in process.items()}
     write_noise_scales(
         folder, mean, observation={k: v for k, v in observation.items() if v is not None},
-        process={k: v / mean[k] for k, v in process.items()}, **{NOISE_DETAILS: details}, **extra,
+        process={k: v / mean[k] for k, v in process.items()},
+        nis_reference={k: v for k, v in nis_levels.items() if math.isfinite(v) and v > 0},
+        **{NOISE_DETAILS: details}, **extra,
     )  # fmt: skip
 
 

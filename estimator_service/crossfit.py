@@ -16,6 +16,7 @@ of an 8-minute flight withheld from training vs 14.7 without.
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -107,6 +108,7 @@ def cross_fit(
     matched: dict[str, list[FloatArray]] = {k: [] for k in kinds}
     obs: dict[str, list[FloatArray]] = {k: [] for k in kinds}
     factors: dict[str, list[float]] = {k: [] for k in kinds}
+    levels: dict[str, list[float]] = {k: [] for k in kinds}
     details: list[dict] = []  # each fold's calibration report
     for i, f in enumerate(folds):
         fold = out / f"fold{i}"
@@ -118,6 +120,7 @@ def cross_fit(
             details.append(read_details(fold))
             for k, r in res.items():
                 factors[k].append(r.factor)
+                levels[k].append(r.nis_level)
                 matched[k].append(r.matched)
                 obs[k].append(r.observation)
         finally:
@@ -125,6 +128,18 @@ def cross_fit(
     process = {k: geometric_mean(v, axis=0) * max(factors[k]) for k, v in matched.items()}
     observation = {k: geometric_mean(v, axis=0) * max(factors[k]) for k, v in obs.items()}
     chosen = {k: {"coverage_factor": max(v)} for k, v in factors.items()}
-    write_calibration(out, process, observation, chosen, fold_details=details,
+    write_calibration(out, process, observation, chosen, {k: _level(v) for k, v in levels.items()},
+                      fold_details=details,
                       folds=[[f.flight, f.rows.start, f.rows.stop] for f in folds])  # fmt: skip
     return process
+
+
+def _level(levels: list[float]) -> float:
+    """The folds' mean NIS/dof levels combined by geometric mean, like their scales (NaN
+    when no fold had one).
+
+    Each level is measured at its fold's own coverage factor; the saved noise takes the
+    largest factor, so the saved filter's innovations are, if anything, below the level in
+    conditions like training and its adaptation starts later, not sooner."""
+    ok = [v for v in levels if math.isfinite(v) and v > 0]
+    return float(geometric_mean(ok)) if ok else math.nan

@@ -22,6 +22,7 @@ from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.calibration import (
     NoiseScaledObservation,
     NoiseScaledPrediction,
+    read_nis_reference,
     read_noise_scales,
     read_observation_scales,
     read_process_ceiling,
@@ -38,6 +39,7 @@ from estimator_service.system import System
 __all__ = [
     "FILTER_KINDS",
     "MODEL_KINDS",
+    "adaptation_defaults",
     "apply_calibration",
     "build_filter",
     "load_models",
@@ -144,10 +146,11 @@ def make_filter(
 ) -> EKF | UKF | PF:  # fmt: skip
     """A filter of ``kind`` (``ekf``, ``ukf``, ``pf``) over the given models.
 
-    ``system`` sets the angle handling (``wrapping``); ``options`` go to the filter (e.g.
-    ``alpha`` for the UKF, ``n_particles`` for the PF). An EKF or UKF adapts its process
-    noise at :data:`~estimator_service.filters.adaptive.ADAPT_RATE` unless ``adapt_rate``
-    says otherwise (0: the paper's filter).
+    ``system`` sets the angle handling (``wrapping``) and which states an adaptive filter
+    inflates (``adapt_states``, its ``disturbed`` components); ``options`` go to the filter
+    (e.g. ``alpha`` for the UKF, ``n_particles`` for the PF). An EKF or UKF adapts its
+    process noise at :data:`~estimator_service.filters.adaptive.ADAPT_RATE` unless
+    ``adapt_rate`` says otherwise (0: the paper's filter).
     """
     if kind not in FILTER_KINDS:
         raise ValueError(f"filter kind must be one of {FILTER_KINDS}, got {kind!r}")
@@ -158,6 +161,8 @@ def make_filter(
         options.setdefault("adapt_rate", ADAPT_RATE)
     if system is not None:
         options.setdefault("wrapping", system.wrapping())
+        if kind != "pf" and system.disturbed is not None:
+            options.setdefault("adapt_states", system.disturbed)
     if kind == "pf":  # a 12-D cloud collapses without regularised resampling, see _PF_DEFAULTS
         for key, value in _PF_DEFAULTS.items():
             options.setdefault(key, value)
@@ -168,9 +173,20 @@ def build_filter(
     filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], **options: object
 ) -> EKF | UKF | PF:
     """``make_filter(filter_kind, *load_models(model_dir, model_kind), system=..., **options)``
-    with the folder's system description."""
+    with the folder's system description and, for an EKF or UKF, its calibrated NIS/dof
+    reference (:func:`adaptation_defaults`)."""
     models = load_models(model_dir, model_kind)
+    if filter_kind != "pf":
+        options = {**adaptation_defaults(model_dir, model_kind), **options}
     return make_filter(filter_kind, *models, system=read_system(model_dir), **options)
+
+
+def adaptation_defaults(model_dir: str | os.PathLike[str], model_kind: str) -> dict[str, object]:
+    """An adaptive EKF's or UKF's options from the model folder: ``adapt_reference``, the
+    calibrated filter's NIS/dof level for ``model_kind`` where ``calibration.json`` has one
+    (:mod:`estimator_service.filters.adaptive`)."""
+    level = read_nis_reference(model_dir).get(model_kind)
+    return {} if level is None else {"adapt_reference": level}
 
 
 def warm_up(filt: EKF | UKF | PF, system: System) -> None:

@@ -34,10 +34,12 @@ __all__ = [
     "MATCH_TOLERANCE",
     "MIN_LEVERAGE",
     "Block",
+    "coverage",
     "coverage_curve",
     "covering_factor",
     "leverage",
     "match_scales",
+    "nis_level",
     "track_block",
 ]
 
@@ -140,9 +142,16 @@ def coverage_curve(blocks: Sequence[Block], scale: FloatArray) -> list[float]:
     """Per factor of :data:`COVERAGE_FACTORS` up to the first that reaches a Gaussian
     belief's ``0.9973 ** n`` (the larger ones are not tracked), the fraction of all the
     blocks' steps on which the EKF keeps the truth within 3 sigma on every dimension."""
+    return coverage(blocks, scale)[0]
+
+
+def coverage(blocks: Sequence[Block], scale: FloatArray) -> tuple[list[float], float]:
+    """:func:`coverage_curve`, and the :func:`nis_level` of the EKF's runs at the last
+    factor tracked (the one :func:`covering_factor` chooses from that curve)."""
     from estimator_service.tracking import within_3sigma
 
     curve: list[float] = []
+    level = math.nan
     for factor in COVERAGE_FACTORS:
         if curve and curve[-1] >= GAUSSIAN_WITHIN3 ** len(scale):
             break
@@ -151,7 +160,18 @@ def coverage_curve(blocks: Sequence[Block], scale: FloatArray) -> list[float]:
         steps = sum(len(r.error) if r is not None else len(range(len(b.flight))[b.rows]) - 1
                     for r, b in zip(runs, blocks, strict=True))  # fmt: skip
         curve.append(float(inside / max(1, steps)))
-    return curve
+        level = nis_level([r for r in runs if r is not None])
+    return curve, level
+
+
+def nis_level(runs: Sequence[TrackResult]) -> float:
+    """The mean NIS/dof over every update of ``runs`` (NaN without one): the innovation
+    level the adaptive filters refer their process-noise factor to
+    (:mod:`estimator_service.filters.adaptive`); 1 for a consistent filter."""
+    ratios = [r.nis[r.dof > 0] / r.dof[r.dof > 0] for r in runs]
+    flat = np.concatenate(ratios) if ratios else np.zeros(0)
+    flat = flat[np.isfinite(flat)]
+    return float(np.mean(flat)) if flat.size else math.nan
 
 
 def covering_factor(curve: Sequence[float], state_dim: int) -> float:

@@ -131,6 +131,11 @@ class System:
     parametric
         Name of the parametric model family this robot has (``"blimp"``) or None; the
         ``param``, ``egp`` and ``hetgp`` model kinds need one.
+    disturbed
+        State components that unmodelled forces act on directly (a robot's velocities):
+        the adaptive EKF and UKF inflate only their process noise
+        (:mod:`estimator_service.filters.adaptive`); None: every component. A filter
+        setting, not a data layout: two systems that differ only here are equal.
     """
 
     name: str
@@ -144,6 +149,7 @@ class System:
     prior_mean: tuple[float, ...] = ()
     prior_std: tuple[float, ...] = ()
     parametric: str | None = None
+    disturbed: tuple[int, ...] | None = field(default=None, compare=False)
     _slices: tuple[slice, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -156,6 +162,8 @@ class System:
         if self.circle_inputs is None:
             fix("circle_inputs", tuple(i for i, p in enumerate(self.state_periods) if p > 0))
         fix("circle_inputs", tuple(int(i) for i in self.circle_inputs))
+        if self.disturbed is not None:
+            fix("disturbed", tuple(int(i) for i in self.disturbed))
         fix("groups", tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
         fix("prior_mean", tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
         fix("prior_std", tuple(float(v) for v in self.prior_std) or (1.0,) * n)
@@ -179,6 +187,9 @@ class System:
             raise SystemError(f"{where}: 'state_periods' must be >= 0 and 'prior_std' > 0")
         if any(not 0 <= i < n or self.state_periods[i] <= 0 for i in self.circle_inputs or ()):
             raise SystemError(f"{where}: 'circle_inputs' must index angle components of the state")
+        d = self.disturbed
+        if d is not None and (not d or len(set(d)) != len(d) or any(not 0 <= i < n for i in d)):
+            raise SystemError(f"{where}: 'disturbed' must be distinct indices of the state (or null: all)")
         for g in self.groups:
             if not g.indices or any(not 0 <= i < n for i in g.indices):
                 raise SystemError(f"{where}: group {g.name!r} indexes outside the state")
@@ -259,6 +270,7 @@ class System:
             "prior_mean": list(self.prior_mean),
             "prior_std": list(self.prior_std),
             "parametric": self.parametric,
+            "disturbed": None if self.disturbed is None else list(self.disturbed),
         }
 
     def to_json(self) -> str:
@@ -286,11 +298,12 @@ class System:
                 Group(g["name"], tuple(int(i) for i in g["indices"]), float(g.get("factor", 1.0)))
                 for g in d.get("groups") or ()
             )
-            circle = d.get("circle_inputs")
+            circle, disturbed = d.get("circle_inputs"), d.get("disturbed")
             return cls(
                 str(d["name"]), tuple(d["state"]), tuple(d["controls"]), sensors, float(d["dt"]),
                 tuple(d.get("state_periods") or ()), None if circle is None else tuple(circle), groups,
                 tuple(d.get("prior_mean") or ()), tuple(d.get("prior_std") or ()), d.get("parametric"),
+                None if disturbed is None else tuple(int(i) for i in disturbed),
             )  # fmt: skip
         except SystemError as exc:
             raise SystemError(f"{where}: {exc}") from None

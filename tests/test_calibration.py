@@ -91,6 +91,33 @@ def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path
     assert isinstance(scaled, NoiseScaledPrediction) and isinstance(cam, NoiseScaledObservation)
     np.testing.assert_allclose(scaled.scale, chosen, rtol=1e-12)
     np.testing.assert_allclose(cam.scale, factor * np.maximum(calibrate_observation_scales, 1.0), rtol=1e-12)
+    _check_nis_reference(flight, rows, tmp_path)
+
+
+def _check_nis_reference(flight, rows: slice, folder: Path) -> None:
+    """The stored reference is the calibrated (non-adaptive) EKF's mean NIS/dof on the
+    calibration rows; the factory's and the service's adaptive filters carry it, and a
+    service configured with rate 0 does not adapt (it adapted at 0.5 before)."""
+    import threading
+    from types import SimpleNamespace
+
+    from estimator_service.factory import build_filter
+    from estimator_service.models.calibration import read_nis_reference
+    from estimator_service.service.server import EstimatorService, ServiceConfig
+    from estimator_service.store import read_system
+    from estimator_service.tracking import track_flight
+
+    r = track_flight(build_filter("ekf", "param", folder, adapt_rate=0.0), flight, rows=rows)
+    has = r.dof > 0
+    level = read_nis_reference(folder)["param"]
+    assert level == pytest.approx(np.mean(r.nis[has] / r.dof[has]), rel=1e-6) and 0 < level < 1.5
+    assert build_filter("ukf", "param", folder).adapt_reference == level
+    assert build_filter("ekf", "param", folder).adapt_states == tuple(range(6, 12))  # the blimp's velocities
+    for rate in (0.0, 0.3):
+        svc = SimpleNamespace(config=ServiceConfig(folder, adapt_rate=rate), _lock=threading.RLock(),
+                              _filters={}, _models={}, system=read_system(folder))  # fmt: skip
+        filt = EstimatorService._build_filter(svc, "ekf", "param")
+        assert (filt.adapt_rate, filt.adapt_reference) == (rate, level)
 
 
 def test_cross_fitted_calibration_keeps_the_truth_inside_3_sigma_on_a_new_flight(tmp_path: Path) -> None:

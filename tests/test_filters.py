@@ -466,6 +466,57 @@ def test_adaptive_process_noise_stays_put_when_consistent_and_inflates_when_not(
     assert f_hard > 2.0 and hard_adapt - 4.0 < 0.5 * (hard_plain - 4.0)  # measured 21.2 -> 9.5
 
 
+def _nis_level(filt, steps: int = 400) -> float:
+    """Mean NIS/dof of ``filt`` on the linear system in its own conditions."""
+    rng, x, belief, ratios = np.random.default_rng(5), PRIOR.mean.copy(), PRIOR, []
+    for _ in range(steps):
+        u = rng.normal(size=2)
+        x = A @ x + B @ u + rng.normal(size=4) * np.sqrt(Q)
+        belief, info = filt.step(belief, u, H @ x + rng.normal(size=3) * np.sqrt(R), np.ones(3, bool))
+        ratios.append(info.nis / info.dof)
+    return float(np.mean(ratios))
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_adaptation_referenced_to_the_calibrated_nis_level_catches_what_nis_one_misses(cls) -> None:
+    """A filter whose noise was widened 2.5x (as a calibration's coverage factor does) has
+    innovations well below consistent (mean NIS/dof 0.4): referred to 1, the adaptation
+    starts only once the innovations are too large *by themselves*, and with 10x the
+    velocities' process noise it hardly moves (NEES 6.9, 4 when consistent; 7.8 without
+    adaptation); referred to the filter's own level it stays at its floor in its own
+    conditions and brings NEES back below 4 (measured 3.7)."""
+    wide = LinearGaussianPrediction(A, B, 2.5 * Q), LinearGaussianObservation(H, 2.5 * R)
+    level = _nis_level(cls(*wide))
+    assert level < 0.5
+    plain, by_one = cls(*wide), cls(*wide, adapt_rate=0.5)
+    by_level = cls(*wide, adapt_rate=0.5, adapt_reference=level)
+    nees_plain, _ = _nees_and_inflation(plain, Q)
+    nees_own, f_own = _nees_and_inflation(by_level, Q)
+    assert f_own < 1.5 and abs(nees_own - nees_plain) < 0.2 * nees_plain
+    hard = Q * np.array([1, 1, 10, 10])
+    nees_one, _ = _nees_and_inflation(by_one, hard)
+    nees_level, f_level = _nees_and_inflation(by_level, hard)
+    assert f_level > 2.0 and nees_level < 4.0 < nees_one - 2.0
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_adaptive_inflation_scales_only_the_disturbed_states(cls) -> None:
+    """The factor multiplies the process variance of ``adapt_states`` only."""
+    belief = GaussianBelief(PRIOR.mean, PRIOR.cov, 4.0)
+    u = np.array([0.3, -0.2])
+    base = cls(PRED, OBS).predict(GaussianBelief(PRIOR.mean, PRIOR.cov), u)
+    only_v = cls(PRED, OBS, adapt_rate=0.5, adapt_states=(2, 3)).predict(belief, u)
+    every = cls(PRED, OBS, adapt_rate=0.5).predict(belief, u)
+    want = np.array([0, 0, 3 * Q[2], 3 * Q[3]])
+    np.testing.assert_allclose(np.diag(only_v.cov) - np.diag(base.cov), want, atol=1e-12)
+    np.testing.assert_allclose(np.diag(every.cov) - np.diag(base.cov), 3 * Q, atol=1e-12)
+    for bad, field in (({"adapt_states": (4,)}, "adapt_states"), ({"adapt_states": (1, 1)}, "adapt_states"),
+                       ({"adapt_states": ()}, "adapt_states"), ({"adapt_reference": 0.0}, "adapt_reference"),
+                       ({"adapt_reference": math.inf}, "adapt_reference")):  # fmt: skip
+        with pytest.raises(ValueError, match=field):
+            cls(PRED, OBS, adapt_rate=0.5, **bad)
+
+
 def test_adaptive_ekf_batched_equals_one_at_a_time_and_the_pf_refuses_the_option() -> None:
     from estimator_service.factory import make_filter
 

@@ -46,6 +46,20 @@ def test_blimp_description_matches_the_filters_angle_handling() -> None:
     assert w.obs.tolist() == [0, 0, 0, 0, math.pi] * 2
 
 
+def test_disturbed_states_round_trip_default_to_all_and_bad_ones_are_named() -> None:
+    """The blimp names its body velocities; a description without the field (every log
+    written before it) means all states and equals one with it (a filter setting)."""
+    blimp = blimp_system(2)
+    assert blimp.disturbed == (6, 7, 8, 9, 10, 11)
+    assert System.from_json(blimp.to_json()).disturbed == blimp.disturbed
+    plain = System.from_dict(SYSTEM)
+    assert plain.disturbed is None and json.loads(plain.to_json())["disturbed"] is None
+    assert System.from_dict(dict(SYSTEM, disturbed=[3, 4])) == plain
+    for bad in ([5], [-1], [1, 1], [], "v"):
+        with pytest.raises(SystemError, match=r"disturbed|malformed"):
+            System.from_dict(dict(SYSTEM, disturbed=bad))
+
+
 def test_csv_log_reads_and_mistakes_are_named(tmp_path: Path) -> None:
     log, sys_file = write_robot_log(tmp_path, np.random.default_rng(1), rows=50)
     system = System.from_json(sys_file.read_text())

@@ -10,7 +10,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 
-from estimator_service.filters.adaptive import MAX_INFLATION, adapted, check_adaptation
+from estimator_service.filters.adaptive import MAX_INFLATION, adapted, check_adaptation, inflation_factors
 from estimator_service.filters.batched import joseph_update_many
 from estimator_service.filters.common import (
     GaussianBelief,
@@ -65,9 +65,27 @@ class _GaussianFilter:
     observation: ObservationModel
     wrapping: Wrapping | None
 
+    adapt_rate: float
+    max_inflation: float
+    adapt_reference: float
+    adapt_states: tuple[int, ...] | None
+
     @property
     def _wrap(self) -> Wrapping:
         return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
+
+    def _check_adaptation(self) -> None:
+        if self.adapt_states is not None:
+            object.__setattr__(self, "adapt_states", tuple(int(i) for i in self.adapt_states))
+        n = self.prediction.state_dim
+        check_adaptation(self.adapt_rate, self.max_inflation, self.adapt_reference, self.adapt_states, n)
+
+    def _factors(self, lam: FloatArray, n: int) -> FloatArray:
+        """The factors on the process variance ``(B, n)`` for the beliefs' inflations ``(B,)``."""
+        return inflation_factors(lam, n, self.adapt_states)
+
+    def _adapted(self, post: GaussianBelief, prior: GaussianBelief, info: StepInfo) -> GaussianBelief:
+        return adapted(post, prior, info, self.adapt_rate, self.max_inflation, self.adapt_reference)
 
     def predict(
         self, belief: GaussianBelief, u: FloatArray, rng: np.random.Generator | None = None
@@ -166,9 +184,11 @@ class EKF(_GaussianFilter):
     name: str = "EKF"
     adapt_rate: float = 0.0
     max_inflation: float = MAX_INFLATION
+    adapt_reference: float = 1.0
+    adapt_states: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
-        check_adaptation(self.adapt_rate, self.max_inflation)
+        self._check_adaptation()
 
     def predict_many(self, beliefs: Sequence[GaussianBelief], u: FloatArray) -> list[GaussianBelief]:
         """:meth:`predict` for ``B`` independent beliefs in one model call (``u: (B, k)``).
@@ -181,7 +201,7 @@ class EKF(_GaussianFilter):
         g = np.eye(means.shape[1]) + out.jac
         covs = g @ np.stack([b.cov for b in beliefs]) @ g.transpose(0, 2, 1)
         lam = np.array([b.inflation for b in beliefs])
-        covs[:, *np.diag_indices(means.shape[1])] += out.var * lam[:, None]
+        covs[:, *np.diag_indices(means.shape[1])] += out.var * self._factors(lam, means.shape[1])
         covs = 0.5 * (covs + covs.transpose(0, 2, 1))
         new_means = self._wrap.state_value(means + out.mean)
         return [GaussianBelief(m, c, f) for m, c, f in zip(new_means, covs, lam.tolist(), strict=True)]
@@ -213,7 +233,7 @@ class EKF(_GaussianFilter):
 
             out = joseph_update_many(mean, cov, r, h, r_noise, self._wrap, single)
             for i, (post, info) in zip(rows[j], out, strict=True):
-                results[i] = adapted(post, priors[i], info, self.adapt_rate, self.max_inflation), info
+                results[i] = self._adapted(post, priors[i], info), info
         return results
 
 
@@ -255,12 +275,14 @@ class UKF(_GaussianFilter):
     name: str = "UKF"
     adapt_rate: float = 0.0
     max_inflation: float = MAX_INFLATION
+    adapt_reference: float = 1.0
+    adapt_states: tuple[int, ...] | None = None
     _w: tuple[FloatArray, FloatArray, float] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.noise not in ("mean", "sigma"):
             raise ValueError(f"noise must be 'mean' or 'sigma', got {self.noise!r}")
-        check_adaptation(self.adapt_rate, self.max_inflation)
+        self._check_adaptation()
         object.__setattr__(
             self, "_w", sigma_weights(self.prediction.state_dim, self.alpha, self.beta, self.kappa)
         )
@@ -304,14 +326,14 @@ class UKF(_GaussianFilter):
             q = out.var.reshape(nb, ns, n).mean(axis=1)
         else:
             q = self.prediction.predict(x[:, 0], u).var
-        results = []
+        results, factors = [], self._factors(np.array([b.inflation for b in beliefs]), n)
         for i, b in enumerate(beliefs):  # small algebra per belief; the model call was shared
             if bad[i]:  # no sigma points: a non-finite prediction, which the step flags
                 results.append(GaussianBelief(np.full(n, np.nan), np.full((n, n), np.nan), b.inflation))
                 continue
             mean = self._wrap.mean(xk[i], wm, self._wrap.state)
             dev = self._wrap.state_diff(xk[i] - mean)
-            cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * b.inflation)
+            cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * factors[i])
             results.append(GaussianBelief(mean, 0.5 * (cov + cov.T), b.inflation))
         return results
 
@@ -354,4 +376,4 @@ class UKF(_GaussianFilter):
         pxz = (dx * wc[:, None]).T @ dz
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zhat, idx)
         post, info = _kalman_update(prior, r, s, pxz, self._wrap)
-        return adapted(post, prior, info, self.adapt_rate, self.max_inflation), info
+        return self._adapted(post, prior, info), info

@@ -38,6 +38,7 @@ which the calibration needs (the parametric model has no roll physics), hence a 
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,10 +53,12 @@ from estimator_service.reprs import short_repr
 __all__ = [
     "CALIBRATION_FILE",
     "CEILING_FACTOR",
+    "NIS_REFERENCE",
     "PROCESS_CEILING",
     "NoiseScaledObservation",
     "NoiseScaledPrediction",
     "read_details",
+    "read_nis_reference",
     "read_noise_scales",
     "read_observation_scales",
     "read_process_ceiling",
@@ -67,6 +70,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 CALIBRATION_FILE = "calibration.json"
 PROCESS_CEILING = "process_variance_ceiling"  # calibration.json key: (n,) variances
+NIS_REFERENCE = "nis_reference"  # calibration.json key: {kind: the calibrated EKF's mean NIS/dof}
 CEILING_FACTOR = 10.0  # the ceiling in units of each state output's variance in training
 
 
@@ -194,6 +198,15 @@ def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatAr
     )
 
 
+def read_nis_reference(folder: str | os.PathLike[str]) -> dict[str, float]:
+    """``{model kind: mean NIS/dof}`` of the calibrated EKF on the held-out calibration
+    blocks (the adaptive filters' reference level,
+    :mod:`estimator_service.filters.adaptive`); empty for models calibrated before it was
+    stored."""
+    ref = _section(folder, NIS_REFERENCE, lambda v: np.array(float(v)), "{kind: number}")
+    return {k: float(v) for k, v in ref.items()}
+
+
 def read_details(folder: str | os.PathLike[str]) -> dict:
     """The ``details`` section of ``folder/calibration.json`` (what each calibration measured)."""
     return _read(folder).get("details", {})
@@ -238,12 +251,18 @@ def write_noise_scales(
     scales: dict[str, float],
     observation: dict[str, FloatArray] | None = None,
     process: dict[str, FloatArray] | None = None,
+    nis_reference: dict[str, float] | None = None,
     **details: object,
 ) -> Path:
-    """Merge process-noise ``scales``, per-output ``observation`` and ``process`` scales into
-    ``folder/calibration.json`` (written to a temporary file, then renamed)."""
+    """Merge process-noise ``scales``, per-output ``observation`` and ``process`` scales and
+    the ``nis_reference`` levels into ``folder/calibration.json`` (written to a temporary
+    file, then renamed)."""
     path = Path(folder) / CALIBRATION_FILE
     merged = {**read_noise_scales(folder), **{k: float(v) for k, v in scales.items()}}
+    levels = {**read_nis_reference(folder), **{k: float(v) for k, v in (nis_reference or {}).items()}}
+    bad = {k: v for k, v in levels.items() if not (math.isfinite(v) and v > 0)}
+    if bad:  # refused before anything is written
+        raise ValueError(f"{NIS_REFERENCE} values must be finite and > 0, got {bad}")
     vectors = {}
     for key, new, read in (("observation_noise_scale", observation, read_observation_scales),
                            ("process_noise_scale", process, read_process_scales)):  # fmt: skip
@@ -251,6 +270,8 @@ def write_noise_scales(
         vectors[key].update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (new or {}).items()})
     old = _read(folder)  # other sections (the process-variance ceiling) are kept as they are
     body = {**old, "noise_scale": merged, **vectors, "details": {**old.get("details", {}), **details}}
+    if levels:
+        body[NIS_REFERENCE] = levels
     return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
 
 

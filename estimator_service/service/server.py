@@ -26,7 +26,7 @@ from typing import Any
 import zenoh
 
 from estimator_service.cli_args import Parser, add_filter_options, checked_int
-from estimator_service.factory import load_models, make_filter, warm_up
+from estimator_service.factory import adaptation_defaults, load_models, make_filter, warm_up
 from estimator_service.filters.adaptive import ADAPT_RATE
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
@@ -96,10 +96,10 @@ class EstimatorService:
             if key not in self._filters:
                 if model not in self._models:
                     self._models[model] = load_models(self.config.model_dir, model)
-                pf, rate = filter_name == "pf", self.config.adapt_rate
-                opts = (
-                    {"n_particles": self.config.n_particles} if pf else {"adapt_rate": rate} if rate else {}
-                )
+                opts: dict[str, object] = {"n_particles": self.config.n_particles}
+                if filter_name != "pf":  # the configured rate, 0 included (off)
+                    opts = {**adaptation_defaults(self.config.model_dir, model)}
+                    opts["adapt_rate"] = self.config.adapt_rate
                 filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
                 warm_up(filt, self.system)  # caches now, not in a blimp's first step
                 self._filters[key] = filt
