@@ -101,6 +101,9 @@ def test_saved_agent_reloads_and_acts_deterministically(models: str, tmp_path: P
         assert load_agent(Path("..") / path.name)[1] == spec
 
 
+OBS_TOL = {"rtol": 1e-4, "atol": 1e-5}  # batched vs one-at-a-time observations (float32 beliefs)
+
+
 @pytest.mark.parametrize(("variant", "filt"), [(v, "ekf") for v in VARIANTS] + [("belief", "ukf")])
 def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, filt: str) -> None:
     """Native batched simulator and batched filter step vs SB3's DummyVecEnv of single
@@ -109,8 +112,11 @@ def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, 
 
     The simulator is equal bit for bit. A batched model call rounds differently from one
     query, and this 60-point GP-EKF, flown far outside its data by random actions, grows
-    that rounding to at most 9.4e-7 (of the covariance's largest entry, or metres) in 300
-    steps; the parametric EKF to 2.9e-9."""
+    that rounding to at most 1.7e-5 (of the covariance's largest entry, or metres) in 300
+    steps; the parametric EKF to 2.9e-9, the GP-UKF to 1.6e-11. The adaptive factor
+    integrates NIS/dof, so its rounding accumulates while it is above its floor: referred to
+    this tiny GP's calibrated level (0.33) it is off the floor most of the time (growth
+    1.7e-5); referred to 1, as before the reference existed, it sat at the floor (1.8e-7)."""
     spec = AgentSpec(variant=variant, models=models, filter=filt, seed=7)
     n = 3
     batched, single = make_vec(spec, n, batched=True), make_vec(spec, n, batched=False)
@@ -122,11 +128,11 @@ def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, 
         actions = rng.uniform(-1, 1, (n, 3)).astype(np.float32) * (1.0 if k % 120 > 60 else 0.2)
         obs, reward, done, infos = batched.step(actions)
         want, want_reward, want_done, want_infos = single.step(actions)
-        np.testing.assert_allclose(obs, want, rtol=1e-5, atol=1e-6)  # float32 of the beliefs below
+        np.testing.assert_allclose(obs, want, **OBS_TOL)  # float32 of the beliefs below
         for b, env in zip(batched.unwrapped.beliefs() or [], single.envs, strict=False):
             want_b = env.env.belief()  # a batched model call vs one query: rounding, grown below
-            np.testing.assert_allclose(b.mean, want_b.mean, rtol=0, atol=1e-5)
-            np.testing.assert_allclose(b.cov, want_b.cov, rtol=0, atol=1e-5 * np.abs(want_b.cov).max())
+            np.testing.assert_allclose(b.mean, want_b.mean, rtol=0, atol=1e-4)
+            np.testing.assert_allclose(b.cov, want_b.cov, rtol=0, atol=1e-4 * np.abs(want_b.cov).max())
         np.testing.assert_array_equal(reward, want_reward)
         np.testing.assert_array_equal(done, want_done)
         for got, exp in zip(infos, want_infos, strict=True):
@@ -135,7 +141,7 @@ def test_batched_belief_env_equals_one_env_at_a_time(models: str, variant: str, 
             if "terminal_observation" in exp:
                 ends += 1
                 last, want_last = got["terminal_observation"], exp["terminal_observation"]
-                np.testing.assert_allclose(last, want_last, rtol=1e-5, atol=1e-6)
+                np.testing.assert_allclose(last, want_last, **OBS_TOL)
                 assert got["episode"]["l"] == exp["episode"]["l"]  # VecMonitor sums float32 rewards
                 assert got["episode"]["r"] == pytest.approx(exp["episode"]["r"], abs=1e-4)
                 assert got["is_success"] == exp["is_success"]
