@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.filters.common import Wrapping
+from estimator_service.filters.common import Wrapping, distinct_indices
 
 __all__ = ["Group", "Sensor", "System", "SystemError", "wrap_angle"]
 
@@ -163,7 +163,13 @@ class System:
             fix("circle_inputs", tuple(i for i, p in enumerate(self.state_periods) if p > 0))
         fix("circle_inputs", tuple(int(i) for i in self.circle_inputs))
         if self.disturbed is not None:
-            fix("disturbed", tuple(int(i) for i in self.disturbed))
+            idx = distinct_indices(self.disturbed, n)
+            if idx is None:
+                raise SystemError(
+                    f"system {self.name!r}: 'disturbed' must be distinct indices of the state "
+                    f"(or null: all), got {self.disturbed!r}"
+                )
+            fix("disturbed", idx)
         fix("groups", tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
         fix("prior_mean", tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
         fix("prior_std", tuple(float(v) for v in self.prior_std) or (1.0,) * n)
@@ -187,9 +193,6 @@ class System:
             raise SystemError(f"{where}: 'state_periods' must be >= 0 and 'prior_std' > 0")
         if any(not 0 <= i < n or self.state_periods[i] <= 0 for i in self.circle_inputs or ()):
             raise SystemError(f"{where}: 'circle_inputs' must index angle components of the state")
-        d = self.disturbed
-        if d is not None and (not d or len(set(d)) != len(d) or any(not 0 <= i < n for i in d)):
-            raise SystemError(f"{where}: 'disturbed' must be distinct indices of the state (or null: all)")
         for g in self.groups:
             if not g.indices or any(not 0 <= i < n for i in g.indices):
                 raise SystemError(f"{where}: group {g.name!r} indexes outside the state")
@@ -303,7 +306,7 @@ class System:
                 str(d["name"]), tuple(d["state"]), tuple(d["controls"]), sensors, float(d["dt"]),
                 tuple(d.get("state_periods") or ()), None if circle is None else tuple(circle), groups,
                 tuple(d.get("prior_mean") or ()), tuple(d.get("prior_std") or ()), d.get("parametric"),
-                None if disturbed is None else tuple(int(i) for i in disturbed),
+                disturbed,
             )  # fmt: skip
         except SystemError as exc:
             raise SystemError(f"{where}: {exc}") from None

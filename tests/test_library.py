@@ -55,7 +55,7 @@ def test_disturbed_states_round_trip_default_to_all_and_bad_ones_are_named() -> 
     plain = System.from_dict(SYSTEM)
     assert plain.disturbed is None and json.loads(plain.to_json())["disturbed"] is None
     assert System.from_dict(dict(SYSTEM, disturbed=[3, 4])) == plain
-    for bad in ([5], [-1], [1, 1], [], "v"):
+    for bad in ([5], [-1], [1, 1], [], "v", [1.5], 3):
         with pytest.raises(SystemError, match=r"disturbed|malformed"):
             System.from_dict(dict(SYSTEM, disturbed=bad))
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ __all__ = [
     "ParticleBelief",
     "StepInfo",
     "Wrapping",
+    "distinct_indices",
     "factorable",
     "make_pd",
     "nis_from_cholesky",
@@ -214,3 +216,14 @@ def normalise_log_weights(logw: FloatArray) -> FloatArray:
 
 def finite(*arrays: FloatArray) -> bool:
     return all(bool(np.isfinite(a).all()) for a in arrays)
+
+
+def distinct_indices(values: object, n: int) -> tuple[int, ...] | None:
+    """``values`` as distinct integer indices into ``n`` components, or None when they are
+    not (not a sequence of integers, empty, repeated or out of range): the one rule for a
+    system's ``disturbed`` states and a filter's ``adapt_states``."""
+    try:
+        idx = tuple(operator.index(i) for i in values)  # type: ignore[attr-defined]
+    except TypeError:
+        return None
+    return idx if idx and len(set(idx)) == len(idx) and all(0 <= i < n for i in idx) else None

@@ -16,6 +16,7 @@ from estimator_service.filters.common import (
     GaussianBelief,
     StepInfo,
     Wrapping,
+    distinct_indices,
     factorable,
     finite,
     implausible,
@@ -75,10 +76,14 @@ class _GaussianFilter:
         return self.wrapping or Wrapping.none(self.prediction.state_dim, self.observation.obs_dim)
 
     def _check_adaptation(self) -> None:
+        check_adaptation(self.adapt_rate, self.max_inflation, self.adapt_reference)
         if self.adapt_states is not None:
-            object.__setattr__(self, "adapt_states", tuple(int(i) for i in self.adapt_states))
-        n = self.prediction.state_dim
-        check_adaptation(self.adapt_rate, self.max_inflation, self.adapt_reference, self.adapt_states, n)
+            n = self.prediction.state_dim
+            idx = distinct_indices(self.adapt_states, n)
+            if idx is None:
+                bad = self.adapt_states
+                raise ValueError(f"adapt_states must be distinct state indices in [0, {n}), got {bad!r}")
+            object.__setattr__(self, "adapt_states", idx)
 
     def _factors(self, lam: FloatArray, n: int) -> FloatArray:
         """The factors on the process variance ``(B, n)`` for the beliefs' inflations ``(B,)``."""

@@ -98,7 +98,7 @@ class EstimatorService:
                     self._models[model] = load_models(self.config.model_dir, model)
                 opts: dict[str, object] = {"n_particles": self.config.n_particles}
                 if filter_name != "pf":  # the configured rate, 0 included (off)
-                    opts = {**adaptation_defaults(self.config.model_dir, model)}
+                    opts = adaptation_defaults(self.config.model_dir, model)
                     opts["adapt_rate"] = self.config.adapt_rate
                 filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
                 warm_up(filt, self.system)  # caches now, not in a blimp's first step
