@@ -25,6 +25,7 @@ def single_env_rate(steps: int, reality: str) -> float:
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (steps, 3)).astype(np.float32)
     env.reset(seed=0)
+    env.step(actions[0])  # warm-up: loads the compiled dynamics
     t0 = time.perf_counter()
     for a in actions:
         _, _, term, trunc, _ = env.step(a)
@@ -38,6 +39,7 @@ def batched_rate(n_envs: int, steps: int, reality: str) -> float:
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (steps, n_envs, 3)).astype(np.float32)
     venv.reset(seed=0)
+    venv.step(actions[0])  # warm-up: loads the compiled dynamics
     t0 = time.perf_counter()
     for a in actions:
         venv.step(a)

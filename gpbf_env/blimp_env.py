@@ -164,12 +164,12 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         a = check_action(action)
         cfg = self.config
         cmd = cfg.map_action(a[None, :], self._params)[0]
-        knots: list[list[float]] = []
         previous = np.array(self._state[:3])
-        self._state, self._motors = rk4_step(
-            self._state, self._motors, cmd.tolist(), self._wind, self._coeffs, math, knots
+        state, motors, knots = rk4_step(
+            np.array(self._state), np.array(self._motors), cmd, np.array(self._wind), self._coeffs
         )
-        self._track.push(np.array(knots)[:, :, None])
+        self._state, self._motors = state[:, 0].tolist(), tuple(motors[:, 0].tolist())
+        self._track.push(knots)
         noise = self.np_random.standard_normal(cfg.noise_size)
         self._advance_wind(noise[:3])
         self._step += 1
@@ -223,7 +223,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     def _make_coeffs(self, params: BlimpParams) -> Coeffs:
         cfg = self.config
-        return make_coeffs([params], cfg.dt, cfg.substeps, math, cfg.strength)
+        return make_coeffs([params], cfg.dt, cfg.substeps, cfg.strength)
 
     def _observe(self, noise: NDArray[np.float64]) -> ObsType:
         aux = self._aux.standard_normal(AUX_DRAWS)

@@ -28,6 +28,8 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
+from gpbf_env.outline import fit_points, outline_kernel
+
 __all__ = ["Camera", "default_cameras", "ellipse_from_points", "euler_to_matrix", "outline_ellipses"]
 
 FloatArray = NDArray[np.float64]
@@ -176,28 +178,16 @@ def default_cameras(
     )
 
 
-def _ellipse_params(centre: FloatArray, shape: FloatArray) -> FloatArray:
-    """``(cx, cy, width, height, angle)`` from centre ``(..., 2)`` and shape ``(..., 2, 2)``."""
-    a, b, c = shape[..., 0, 0], shape[..., 0, 1], shape[..., 1, 1]
-    half, diff = 0.5 * (a + c), 0.5 * (a - c)
-    rad = np.sqrt(diff * diff + b * b)
-    lam1 = half + rad
-    lam2 = np.maximum(half - rad, 0.0)
-    angle = 0.5 * np.arctan2(2.0 * b, a - c)
-    angle = np.where(angle <= -math.pi / 2, angle + math.pi, angle)
-    return np.stack([centre[..., 0], centre[..., 1], 2 * np.sqrt(lam1), 2 * np.sqrt(lam2), angle], axis=-1)
-
-
 def ellipse_from_points(points: FloatArray, shape_factor: float = 2.0) -> FloatArray:
     """Moment fit of an ellipse to points ``(..., K, 2)``.
 
     ``shape_factor`` is 2 for points equally spaced on the boundary and 4 for the pixels
     filling an ellipse. Returns ``(..., 5)`` ellipse parameters.
     """
-    centre = points.mean(axis=-2)
-    d = points - centre[..., None, :]
-    cov = np.einsum("...ki,...kj->...ij", d, d) / points.shape[-2]
-    return _ellipse_params(centre, shape_factor * cov)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    out = np.empty((*pts.shape[:-2], 5))
+    fit_points(pts.reshape(-1, *pts.shape[-2:]), float(shape_factor), out.reshape(-1, 5))
+    return out
 
 
 def outline_ellipses(
@@ -228,38 +218,29 @@ def outline_ellipses(
     visible: (N, C) bool
         The whole envelope is in front of the camera and the ellipse centre is in the image.
     """
-    n = position.shape[0]
-    diag_a = np.square(np.asarray(semi_axes, dtype=np.float64))
-    t = np.linspace(0.0, 2 * math.pi, N_BOUNDARY, endpoint=False)
-    circle = np.stack([np.cos(t), np.sin(t)], axis=-1)  # (K, 2)
-    out = np.zeros((n, len(cameras), 5))
-    visible = np.zeros((n, len(cameras)), dtype=bool)
-    for k, cam in enumerate(cameras):  # a handful of cameras; vectorised over blimps
-        rc = np.einsum("ij,njk->nik", cam.rotation, rotation)
-        cc = (position - cam.position) @ cam.rotation.T
-        m = np.einsum("nik,k,njk->nij", rc, diag_a, rc) - cc[:, :, None] * cc[:, None, :]
-        kmat = cam.intrinsics()
-        cstar = np.einsum("ij,njk,lk->nil", kmat, m, kmat)
-        denom = -cstar[:, 2, 2]
-        ok = (denom > 1e-9) & (cc[:, 2] > 0)
-        denom = np.where(ok, denom, 1.0)
-        centre = -cstar[:, :2, 2] / denom[:, None]
-        shape = cstar[:, :2, :2] / denom[:, None, None] + centre[:, :, None] * centre[:, None, :]
-        par = _ellipse_params(centre, shape)
-        a1, a2, ang = 0.5 * par[:, 2], 0.5 * par[:, 3], par[:, 4]
-        e1 = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
-        e2 = np.stack([-np.sin(ang), np.cos(ang)], axis=-1)
-        pts = (
-            centre[:, None, :]
-            + (a1[:, None] * circle[None, :, 0])[..., None] * e1[:, None, :]
-            + (a2[:, None] * circle[None, :, 1])[..., None] * e2[:, None, :]
-        )
-        pts = cam.distort_pixels(pts)
-        if noise_px is not None:
-            pts = pts + noise_px[:, k]
-        fit = ellipse_from_points(pts, 2.0)
-        w, h = cam.size
-        inside = (fit[:, 0] >= 0) & (fit[:, 0] <= w - 1) & (fit[:, 1] >= 0) & (fit[:, 1] <= h - 1)
-        visible[:, k] = ok & inside & (fit[:, 2] < 2 * w)
-        out[:, k] = np.where(visible[:, k, None], fit, 0.0)
+    n, c = position.shape[0], len(cameras)
+    axes2 = np.square(np.asarray(semi_axes, dtype=np.float64))
+    noise = np.zeros((n, c, N_BOUNDARY, 2)) if noise_px is None else np.asarray(noise_px, dtype=np.float64)
+    out, visible = np.zeros((n, c, 5)), np.zeros((n, c), dtype=bool)
+    rot = np.ascontiguousarray(rotation, dtype=np.float64)
+    outline_kernel(np.ascontiguousarray(position, dtype=np.float64), rot, axes2, *_camera_arrays(cameras),
+                   _CIRCLE, np.ascontiguousarray(noise), out, visible)  # fmt: skip
     return out, visible
+
+
+_ANGLES = np.linspace(0.0, 2 * math.pi, N_BOUNDARY, endpoint=False)
+_CIRCLE = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)], axis=-1)  # (K, 2) unit-circle samples
+_CAMERA_ARRAYS: dict[int, tuple[tuple[Camera, ...], tuple[FloatArray, FloatArray, FloatArray]]] = {}
+
+
+def _camera_arrays(cameras: tuple[Camera, ...]) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rotations (C, 3, 3), positions (C, 3) and ``(focal, cx, cy, k1, k2, width, height)`` (C, 7)."""
+    entry = _CAMERA_ARRAYS.get(id(cameras))
+    if entry is None or entry[0] is not cameras:
+        arrays = (
+            np.stack([cam.rotation for cam in cameras]).astype(np.float64),
+            np.stack([cam.position for cam in cameras]).astype(np.float64),
+            np.array([[cam.focal, *cam.principal_point, cam.k1, cam.k2, *cam.size] for cam in cameras]),
+        )
+        entry = _CAMERA_ARRAYS[id(cameras)] = (cameras, arrays)
+    return entry[1]

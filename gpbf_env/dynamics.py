@@ -1,10 +1,9 @@
-"""Six-degree-of-freedom blimp dynamics, written once for scalars and for batches.
+"""Six-degree-of-freedom blimp dynamics: one compiled kernel for one blimp or a batch.
 
-Every function here is written component-wise with ``+ - * /``, ``abs`` and the
-``sin``/``cos``/``exp``/``floor`` of a namespace ``xp``. Called with ``xp=math`` and Python
-floats it steps one blimp with no array overhead (the single env); called with
-``xp=numpy`` and ``(N,)`` arrays it steps ``N`` blimps in one vectorised pass (the
-batched vector env). Both run the same operations in the same order.
+The ODE and its fixed-step RK4 integration are scalar code compiled by numba
+(:func:`rk4_batch` loops over the blimps), so the single env and the batched vector env
+run the same operations in the same order, with no per-operation array overhead.
+:func:`rk4_step` and :func:`derivative` are the Python entry points.
 
 State (12): ``x y z`` (world, m), ``phi theta psi`` (rad), ``u v w`` (body, m/s),
 ``p q r`` (body, rad/s). Motor state (3): main thrust (N), vector angle (rad), tail
@@ -15,226 +14,182 @@ thrust (N); each follows its command with a first-order lag that is integrated e
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from gpbf_env.lab_dynamics import (
-    LabCoeffs,
-    inflow_loss,
-    lab_rates,
-    make_lab_coeffs,
-    motor_track,
-    thrust_targets,
-)
-from gpbf_env.params import BlimpParams
+from gpbf_env import coeffs as C
+from gpbf_env.coeffs import Coeffs, make_coeffs
+from gpbf_env.jit import kernel
+from gpbf_env.lab_dynamics import inflow_loss, lab_rates, motor_track, thrust_targets
 
 __all__ = ["Coeffs", "derivative", "make_coeffs", "rk4_step", "wrap_angle"]
 
-Num = Any  # a float, or an (N,) float64 array
+FloatArray = NDArray[np.float64]
+_TWO_PI = 2.0 * math.pi
 
 
-@dataclass(frozen=True)
-class Coeffs:
-    """Per-blimp constants derived from :class:`BlimpParams` (floats or ``(N,)`` arrays)."""
-
-    m: tuple[Num, Num, Num]
-    j: tuple[Num, Num, Num]
-    net_lift: Num  # buoyancy minus weight (N)
-    righting: Num  # weight times CG offset (N m)
-    d1: tuple[Num, Num, Num]
-    d2: tuple[Num, Num, Num]
-    e1: tuple[Num, Num, Num]
-    e2: tuple[Num, Num, Num]
-    y_uv: Num
-    z_uw: Num
-    n_uv: Num
-    m_uw: Num
-    fan_offset: Num
-    tail_arm: Num
-    decay: tuple[tuple[Num, Num, Num], ...]  # motor lag factor at each half sub-step
-    h: float  # RK4 sub-step (s)
-    n_sub: int
-    lab: LabCoeffs | None = None  # the unmodelled effects; None in the textbook world
+@kernel
+def wrap_angle(a: Any) -> Any:
+    """Angles (a float or an array) wrapped to ``[-pi, pi)``."""
+    return a - _TWO_PI * np.floor((a + math.pi) / _TWO_PI)
 
 
-def _stack(values: Sequence[float], xp: Any) -> Num:
-    return values[0] if xp is math else np.asarray(values, dtype=np.float64)
-
-
-def make_coeffs(
-    params: Sequence[BlimpParams], dt: float, n_sub: int, xp: Any, strength: float = 0.0
-) -> Coeffs:
-    """Derive integration constants for one (``xp=math``) or many (``xp=numpy``) blimps.
-
-    Parameters
-    ----------
-    params
-        One parameter set per blimp; exactly one when ``xp`` is :mod:`math`.
-    dt
-        Env step (s); controls are held over it.
-    n_sub
-        RK4 sub-steps per env step.
-    strength
-        Reality strength of the unmodelled effects (:mod:`gpbf_env.reality`); 0 is the
-        textbook world.
-    """
-    if xp is math and len(params) != 1:
-        raise ValueError("scalar dynamics take exactly one BlimpParams")
-
-    def col(get: Any) -> Num:
-        return _stack([float(get(p)) for p in params], xp)
-
-    def vec(get: Any) -> tuple[Num, Num, Num]:
-        return tuple(col(lambda p, i=i: get(p)[i]) for i in range(3))  # type: ignore[return-value]
-
-    h = dt / n_sub
-    taus = (
-        col(lambda p: p.tau_main),
-        col(lambda p: p.tau_angle),
-        col(lambda p: p.tau_tail),
-    )
-    decay = tuple(tuple(xp.exp(-(k * h / 2) / tau) for tau in taus) for k in range(2 * n_sub + 1))
-    return Coeffs(
-        m=vec(lambda p: p.total_mass),
-        j=vec(lambda p: p.total_inertia),
-        net_lift=col(lambda p: (p.buoyancy_ratio - 1.0) * p.mass * p.gravity),
-        righting=col(lambda p: p.mass * p.gravity * p.cg_below_cb),
-        d1=vec(lambda p: p.lin_drag),
-        d2=vec(lambda p: p.quad_drag),
-        e1=vec(lambda p: p.lin_rot_drag),
-        e2=vec(lambda p: p.quad_rot_drag),
-        y_uv=col(lambda p: p.lift_y_uv),
-        z_uw=col(lambda p: p.lift_z_uw),
-        n_uv=col(lambda p: p.moment_n_uv),
-        m_uw=col(lambda p: p.moment_m_uw),
-        fan_offset=col(lambda p: p.fan_offset),
-        tail_arm=col(lambda p: p.tail_arm),
-        decay=decay,
-        h=h,
-        n_sub=n_sub,
-        lab=make_lab_coeffs(params, strength, dt, n_sub, xp) if strength > 0 else None,
-    )
-
-
-def wrap_angle(a: Num, xp: Any) -> Num:
-    """Wrap an angle to ``[-pi, pi)``."""
-    return a - 2.0 * math.pi * xp.floor((a + math.pi) / (2.0 * math.pi))
-
-
-def derivative(s: Sequence[Num], mot: Sequence[Num], wind: Sequence[Num], c: Coeffs, xp: Any):
-    """Time derivative of the 12-D state; paper eq. (30) plus drag, lift and gusts."""
-    _, _, _, phi, th, psi, u, v, w, p, q, r = s
-    sf, cf = xp.sin(phi), xp.cos(phi)
-    st, ct = xp.sin(th), xp.cos(th)
-    sp, cp = xp.sin(psi), xp.cos(psi)
+@kernel
+def _derivative(
+    s: FloatArray, mot: FloatArray, wind: FloatArray, k: FloatArray, lab: bool, out: FloatArray
+) -> None:
+    """Time derivative ``out`` (12,) of state ``s`` (12,); paper eq. (30) plus drag, lift, gusts."""
+    phi, th, psi, u, v, w, p, q, r = s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11]
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(th), math.cos(th)
+    sp, cp = math.sin(psi), math.cos(psi)
     r11, r12, r13 = cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf
     r21, r22, r23 = sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf
     r31, r32, r33 = -st, ct * sf, ct * cf
-    wx, wy, wz = wind
+    wx, wy, wz = wind[0], wind[1], wind[2]
     ur = u - (r11 * wx + r21 * wy + r31 * wz)
     vr = v - (r12 * wx + r22 * wy + r32 * wz)
     wr = w - (r13 * wx + r23 * wy + r33 * wz)
-    thrust, mu, tail = mot
-    if c.lab is not None:
-        thrust, tail = inflow_loss(
-            thrust, mu, tail, (ur, vr, wr), (p, q, r), (c.fan_offset, c.tail_arm), c.lab, xp
-        )
-    fx_fan, fz_fan = thrust * xp.cos(mu), thrust * xp.sin(mu)
-    d1, d2, e1, e2 = c.d1, c.d2, c.e1, c.e2
-    fx = c.net_lift * r31 + fx_fan - (d1[0] + d2[0] * abs(ur)) * ur
-    fy = c.net_lift * r32 + tail - (d1[1] + d2[1] * abs(vr)) * vr + c.y_uv * ur * vr
-    fz = c.net_lift * r33 + fz_fan - (d1[2] + d2[2] * abs(wr)) * wr + c.z_uw * ur * wr
-    tx = -c.righting * r32 - (e1[0] + e2[0] * abs(p)) * p
-    ty = c.righting * r31 - c.fan_offset * fx_fan - (e1[1] + e2[1] * abs(q)) * q
-    ty = ty + c.m_uw * ur * wr
-    tz = -c.tail_arm * tail - (e1[2] + e2[2] * abs(r)) * r + c.n_uv * ur * vr
-    m1, m2, m3 = c.m
-    j1, j2, j3 = c.j
+    thrust, mu, tail = mot[0], mot[1], mot[2]
+    if lab:
+        thrust, tail = inflow_loss(thrust, mu, tail, (ur, vr, wr), (p, q, r), k)
+    fx_fan, fz_fan = thrust * math.cos(mu), thrust * math.sin(mu)
+    net_lift, righting = k[C.NET_LIFT], k[C.RIGHTING]
+    fx = net_lift * r31 + fx_fan - (k[C.D1] + k[C.D2] * abs(ur)) * ur
+    fy = net_lift * r32 + tail - (k[C.D1 + 1] + k[C.D2 + 1] * abs(vr)) * vr + k[C.Y_UV] * ur * vr
+    fz = net_lift * r33 + fz_fan - (k[C.D1 + 2] + k[C.D2 + 2] * abs(wr)) * wr + k[C.Z_UW] * ur * wr
+    tx = -righting * r32 - (k[C.E1] + k[C.E2] * abs(p)) * p
+    ty = righting * r31 - k[C.FAN_OFFSET] * fx_fan - (k[C.E1 + 1] + k[C.E2 + 1] * abs(q)) * q
+    ty = ty + k[C.M_UW] * ur * wr
+    tz = -k[C.TAIL_ARM] * tail - (k[C.E1 + 2] + k[C.E2 + 2] * abs(r)) * r + k[C.N_UV] * ur * vr
     tq = (q * sf + r * cf) / ct
-    kinematics = (
-        r11 * u + r12 * v + r13 * w,
-        r21 * u + r22 * v + r23 * w,
-        r31 * u + r32 * v + r33 * w,
-        p + st * tq,
-        q * cf - r * sf,
-        tq,
-    )
-    if c.lab is not None:
-        nu = (u, v, w, p, q, r)
-        return (*kinematics, *lab_rates(nu, (fx, fy, fz, tx, ty, tz), fx_fan, tail, (r31, r33), c))
-    return (
-        *kinematics,
-        (fx - (q * m3 * w - r * m2 * v)) / m1,
-        (fy - (r * m1 * u - p * m3 * w)) / m2,
-        (fz - (p * m2 * v - q * m1 * u)) / m3,
-        (tx - (q * j3 * r - r * j2 * q)) / j1,
-        (ty - (r * j1 * p - p * j3 * r)) / j2,
-        (tz - (p * j2 * q - q * j1 * p)) / j3,
-    )
+    out[0] = r11 * u + r12 * v + r13 * w
+    out[1] = r21 * u + r22 * v + r23 * w
+    out[2] = r31 * u + r32 * v + r33 * w
+    out[3] = p + st * tq
+    out[4] = q * cf - r * sf
+    out[5] = tq
+    if lab:
+        lab_rates(s, (fx, fy, fz, tx, ty, tz), fx_fan, tail, r31, r33, k, out)
+        return
+    m1, m2, m3, j1, j2, j3 = k[C.M1], k[C.M2], k[C.M3], k[C.J1], k[C.J2], k[C.J3]
+    out[6] = (fx - (q * m3 * w - r * m2 * v)) / m1
+    out[7] = (fy - (r * m1 * u - p * m3 * w)) / m2
+    out[8] = (fz - (p * m2 * v - q * m1 * u)) / m3
+    out[9] = (tx - (q * j3 * r - r * j2 * q)) / j1
+    out[10] = (ty - (r * j1 * p - p * j3 * r)) / j2
+    out[11] = (tz - (p * j2 * q - q * j1 * p)) / j3
 
 
-def _motors_at(m0: Sequence[Num], cmd: Sequence[Num], k: int, c: Coeffs) -> tuple[Num, ...]:
-    return tuple(ci + (mi - ci) * di for mi, ci, di in zip(m0, cmd, c.decay[k], strict=True))
+@kernel
+def _motor_states(
+    m0: FloatArray, cmd: FloatArray, decay: FloatArray, decay_up: FloatArray, half_times: FloatArray,
+    k: FloatArray, lab: bool, track: FloatArray,
+) -> None:  # fmt: skip
+    """Motor states ``track`` (2 n_sub + 1, 3) over an env step with ``cmd`` held."""
+    if lab:
+        motor_track(m0, thrust_targets(cmd[0], cmd[1], cmd[2], k), decay, decay_up, half_times, k, track)
+        return
+    for j in range(track.shape[0]):
+        for i in range(3):
+            track[j, i] = cmd[i] + (m0[i] - cmd[i]) * decay[j, i]
+
+
+@kernel
+def _rk4_one(
+    s: FloatArray, track: FloatArray, wind: FloatArray, k: FloatArray, lab: bool, h: float, n_sub: int,
+    knots: FloatArray, b: int,
+) -> None:  # fmt: skip
+    """Integrate state ``s`` (12,) of blimp ``b`` over one env step in place."""
+    k1, k2, k3, k4, tmp = np.empty(12), np.empty(12), np.empty(12), np.empty(12), np.empty(12)
+    for i in range(12):
+        knots[0, i, b] = s[i]
+    for j in range(n_sub):
+        _derivative(s, track[2 * j], wind, k, lab, k1)
+        for i in range(12):
+            tmp[i] = s[i] + 0.5 * h * k1[i]
+        _derivative(tmp, track[2 * j + 1], wind, k, lab, k2)
+        for i in range(12):
+            tmp[i] = s[i] + 0.5 * h * k2[i]
+        _derivative(tmp, track[2 * j + 1], wind, k, lab, k3)
+        for i in range(12):
+            tmp[i] = s[i] + h * k3[i]
+        _derivative(tmp, track[2 * j + 2], wind, k, lab, k4)
+        for i in range(12):
+            s[i] = s[i] + (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+            knots[j + 1, i, b] = s[i]
+
+
+@kernel
+def rk4_batch(
+    state: FloatArray, motors: FloatArray, command: FloatArray, wind: FloatArray, table: FloatArray,
+    decay: FloatArray, decay_up: FloatArray, half_times: FloatArray, h: float, lab: bool, knots: FloatArray,
+) -> None:  # fmt: skip
+    """Advance ``N`` blimps one env step in place: state (12, N), motors (3, N).
+
+    ``command`` and ``wind`` (3, N) are held over the step; ``knots``
+    (n_sub + 1, 12, N) receives the states at the start and after every sub-step
+    (angles not yet wrapped). The other arguments are the fields of :class:`Coeffs`.
+    """
+    n_sub = knots.shape[0] - 1
+    s, m0, cmd, gust = np.empty(12), np.empty(3), np.empty(3), np.empty(3)
+    track = np.empty((half_times.shape[0], 3))
+    for b in range(state.shape[1]):
+        for i in range(12):
+            s[i] = state[i, b]
+        for i in range(3):
+            m0[i], cmd[i], gust[i] = motors[i, b], command[i, b], wind[i, b]
+        k = table[b]
+        _motor_states(m0, cmd, decay[b], decay_up[b], half_times, k, lab, track)
+        _rk4_one(s, track, gust, k, lab, h, n_sub, knots, b)
+        for i in range(12):
+            state[i, b] = s[i]
+        for i in (3, 4, 5):
+            state[i, b] = wrap_angle(s[i])
+        for i in range(3):
+            motors[i, b] = track[-1, i]
 
 
 def rk4_step(
-    state: Sequence[Num],
-    motors: Sequence[Num],
-    command: Sequence[Num],
-    wind: Sequence[Num],
-    c: Coeffs,
-    xp: Any,
-    knots: list[list[Num]] | None = None,
-) -> tuple[list[Num], tuple[Num, ...]]:
-    """Advance one env step with ``c.n_sub`` fixed RK4 sub-steps.
+    state: FloatArray, motors: FloatArray, command: FloatArray, wind: FloatArray, c: Coeffs
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Advance ``N`` blimps one env step with ``c.n_sub`` fixed RK4 sub-steps.
 
     Parameters
     ----------
-    state
-        12 components (floats, or ``(N,)`` arrays).
-    motors
-        3 motor states at the start of the step.
-    command
-        3 saturated motor commands, held over the step.
-    wind
-        3 world-frame gust velocity components, held over the step.
+    state: (12, N)
+    motors: (3, N)
+        Motor states at the start of the step.
+    command: (3, N)
+        Saturated motor commands, held over the step.
+    wind: (3, N)
+        World-frame gust velocity, held over the step.
     c
-        Constants from :func:`make_coeffs`.
-    xp
-        :mod:`math` or :mod:`numpy`.
-    knots
-        When given, the state at the start and after every sub-step (``n_sub + 1``
-        states, angles not yet wrapped) is appended to it.
+        Constants from :func:`make_coeffs` (N blimps).
 
     Returns
     -------
-    state, motors
-        The state (angles wrapped) and motor states at the end of the step.
+    state: (12, N)
+        The state at the end of the step, angles wrapped.
+    motors: (3, N)
+    knots: (n_sub + 1, 12, N)
+        The state at the start and after every sub-step (angles not yet wrapped).
     """
-    s = list(state)
-    h = c.h
-    if c.lab is None:
-        track = [_motors_at(motors, command, k, c) for k in range(2 * c.n_sub + 1)]
-    else:
-        track = motor_track(motors, thrust_targets(command, c.lab), c.decay, c.lab, xp)
-    if knots is not None:
-        knots.append(s)
-    for j in range(c.n_sub):
-        m_a, m_b, m_c = track[2 * j], track[2 * j + 1], track[2 * j + 2]
-        k1 = derivative(s, m_a, wind, c, xp)
-        k2 = derivative([a + 0.5 * h * b for a, b in zip(s, k1, strict=True)], m_b, wind, c, xp)
-        k3 = derivative([a + 0.5 * h * b for a, b in zip(s, k2, strict=True)], m_b, wind, c, xp)
-        k4 = derivative([a + h * b for a, b in zip(s, k3, strict=True)], m_c, wind, c, xp)
-        s = [
-            a + (h / 6.0) * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-            for a, b1, b2, b3, b4 in zip(s, k1, k2, k3, k4, strict=True)
-        ]
-        if knots is not None:
-            knots.append(s)
-    s = list(s)
-    for i in (3, 4, 5):
-        s[i] = wrap_angle(s[i], xp)
-    return s, track[-1]
+    n = c.table.shape[0]
+    out = np.array(state, dtype=np.float64).reshape(12, n)
+    mot = np.array(motors, dtype=np.float64).reshape(3, n)
+    knots = np.empty((c.n_sub + 1, 12, n))
+    cmd = np.ascontiguousarray(command, dtype=np.float64).reshape(3, n)
+    gust = np.ascontiguousarray(wind, dtype=np.float64).reshape(3, n)
+    rk4_batch(out, mot, cmd, gust, c.table, c.decay, c.decay_up, c.half_times, c.h, c.lab, knots)
+    return out, mot, knots
+
+
+def derivative(state: FloatArray, motors: FloatArray, wind: FloatArray, c: Coeffs) -> FloatArray:
+    """Time derivative (12,) of one blimp's state (12,) under motor states and wind (3,)."""
+    out = np.empty(12)
+    as_vec = [np.ascontiguousarray(v, dtype=np.float64) for v in (state, motors, wind)]
+    _derivative(*as_vec, c.table[0], c.lab, out)
+    return out

@@ -19,8 +19,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from gpbf_env.camera import euler_to_matrix
 from gpbf_env.dynamics import wrap_angle
+from gpbf_env.mocap_kernel import measure_kernel, pose_rates
 
 __all__ = ["AUX_DRAWS", "MOCAP_RATE_HZ", "PoseTrack", "measure"]
 
@@ -38,25 +38,7 @@ _STD = np.array([POSITION_STD_M] * 3 + [ANGLE_STD_RAD] * 3)
 
 def wrap(a: FloatArray) -> FloatArray:
     """Angles wrapped to ``[-pi, pi)`` (the dynamics' own rule)."""
-    return wrap_angle(a, np)
-
-
-def pose_rates(states: FloatArray) -> FloatArray:
-    """World-frame velocity and Euler-angle rates ``(6, ...)`` of states ``(12, ...)``."""
-    phi, th, psi, u, v, w, p, q, r = states[3:]
-    sf, cf, st, ct, sp, cp = np.sin(phi), np.cos(phi), np.sin(th), np.cos(th), np.sin(psi), np.cos(psi)
-    tq = (q * sf + r * cf) / ct
-    a, b = st * sf, st * cf  # shared factors of the rotation's rows
-    return np.stack(
-        [
-            cp * ct * u + (cp * a - sp * cf) * v + (cp * b + sp * sf) * w,
-            sp * ct * u + (sp * a + cp * cf) * v + (sp * b - cp * sf) * w,
-            -st * u + ct * sf * v + ct * cf * w,
-            p + st * tq,
-            q * cf - r * sf,
-            tq,
-        ]
-    )
+    return wrap_angle(a)
 
 
 class PoseTrack:
@@ -78,7 +60,8 @@ class PoseTrack:
         self.n_sub, self.dt, self.depth = n_sub, dt, depth
         # [step back, knot, pose|rate, blimp]; angles continuous along the whole track
         self._buf = np.zeros((depth, n_sub + 1, 12, n))
-        self._slope = self._slope_weights()
+        at, weights = self._slope_weights()
+        self._slope_at, self._slope_w = at, weights
 
     def reset_rows(self, rows: NDArray[np.int64], states: FloatArray) -> None:
         """Blimps ``rows`` held still at the poses of ``states`` (len(rows), 12) until now."""
@@ -91,24 +74,11 @@ class PoseTrack:
         last = self._buf[1, -1, 3:6].copy()
         self._buf[0, :, :6] = knots[:, :6]
         self._buf[0, :, 3:6] += last - knots[0, 3:6]  # undo the wrap at the step boundary
-        self._buf[0, :, 6:] = pose_rates(knots.transpose(1, 0, 2)).transpose(1, 0, 2)
+        pose_rates(knots, self._buf[0, :, 6:])
 
-    def newest(self) -> FloatArray:
-        """Poses ``(N, 6)`` now, angles wrapped."""
-        pose = self._buf[0, -1, :6].T.copy()
-        pose[:, 3:] = wrap(pose[:, 3:])
-        return pose
-
-    def slope(self) -> FloatArray:
-        """Least-squares pose slope ``(N, 6)`` of the noiseless 120 Hz samples."""
-        total = np.zeros(self._buf.shape[2:])
-        for j, i, wp, wr in self._slope:  # the few knots in the window, in a fixed order
-            knot = self._buf[j, i]
-            total[:6] += wp * knot[:6] + wr * knot[6:]
-        return total[:6].T
-
-    def _slope_weights(self) -> list[tuple[int, int, float, float]]:
-        """The slope of :func:`measure`'s samples as weights on the knots' poses and rates."""
+    def _slope_weights(self) -> tuple[NDArray[np.int64], FloatArray]:
+        """The slope of :func:`measure`'s samples as weights (L, 2) on the poses and rates
+        of the knots (L, 2) (step back, knot) in the window."""
         j, i, u = self._locate(np.clip(_LAGS, 0.0, self.depth * self.dt))
         h = self.dt / self.n_sub
         sp = np.zeros((self.depth, self.n_sub + 1))
@@ -120,8 +90,8 @@ class PoseTrack:
             sr[a] += _SLOPE[m] * (um**3 - 2 * um**2 + um) * h
             sp[b] += _SLOPE[m] * (-2 * um**3 + 3 * um**2)
             sr[b] += _SLOPE[m] * (um**3 - um**2) * h
-        nz = zip(*np.nonzero((sp != 0) | (sr != 0)), strict=True)
-        return [(int(a), int(b), float(sp[a, b]), float(sr[a, b])) for a, b in nz]
+        at = np.argwhere((sp != 0) | (sr != 0))  # the few knots in the window, in a fixed order
+        return at, np.stack([sp[tuple(at.T)], sr[tuple(at.T)]], axis=1)
 
     def _locate(self, lag: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray]:
         """Step back ``j``, knot ``i`` and fraction ``u`` of the segment holding each lag."""
@@ -164,22 +134,8 @@ def measure(track: PoseTrack, noise: FloatArray) -> FloatArray:
     noise: (N, AUX_DRAWS)
         Standard normal draws; the first ``12 * 6`` are used.
     """
-    eps = noise[:, : MOCAP_SAMPLES * 6].reshape(-1, MOCAP_SAMPLES, 6) * _STD
-    pose = track.newest() + eps[:, 0]
-    pose[:, 3:] = wrap(pose[:, 3:])
-    slope = track.slope()
-    for m in range(MOCAP_SAMPLES):  # fixed order: one blimp or many, the same sums
-        slope = slope + _SLOPE[m] * eps[:, m]
-    rot = euler_to_matrix(pose[:, 3:])
-    body_v = rot[:, 0] * slope[:, :1] + rot[:, 1] * slope[:, 1:2] + rot[:, 2] * slope[:, 2:3]
-    phi, th = pose[:, 3], pose[:, 4]
-    d_phi, d_th, d_psi = slope[:, 3], slope[:, 4], slope[:, 5]
-    rates = np.stack(
-        [
-            d_phi - np.sin(th) * d_psi,
-            np.cos(phi) * d_th + np.sin(phi) * np.cos(th) * d_psi,
-            -np.sin(phi) * d_th + np.cos(phi) * np.cos(th) * d_psi,
-        ],
-        axis=1,
+    out = np.empty((noise.shape[0], 12))
+    measure_kernel(
+        track._buf, track._slope_at, track._slope_w, np.ascontiguousarray(noise), _STD, _SLOPE, out
     )
-    return np.concatenate([pose, body_v, rates], axis=1)
+    return out

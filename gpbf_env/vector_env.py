@@ -169,14 +169,11 @@ class BlimpVectorEnv(VectorEnv):
         moving = np.flatnonzero(~self._autoreset)
         cfg = self.config
         cmd = np.clip(a, -1.0, 1.0) * self._scale
-        knots: list[list[NDArray[np.float64]]] = []
         previous = self._state[:3].T.copy()
-        state, motors = rk4_step(
-            list(self._state), self._motors, list(cmd.T), list(self._wind), self._coeffs, np, knots
-        )
-        self._track.push(np.array(knots))
+        state, motors, knots = rk4_step(self._state, np.stack(self._motors), cmd.T, self._wind, self._coeffs)
+        self._track.push(knots)
         noise = np.zeros((n, cfg.noise_size - 3))
-        self._state[:, moving] = np.array(state)[:, moving]
+        self._state[:, moving] = state[:, moving]
         self._motors = tuple(
             np.where(self._autoreset, m0, m1) for m0, m1 in zip(self._motors, motors, strict=True)
         )
@@ -268,7 +265,7 @@ class BlimpVectorEnv(VectorEnv):
 
     def _rebuild_coeffs(self) -> None:
         cfg = self.config
-        self._coeffs = make_coeffs(self._params, cfg.dt, cfg.substeps, np, cfg.strength)
+        self._coeffs = make_coeffs(self._params, cfg.dt, cfg.substeps, cfg.strength)
         self._lag = np.array([camera_lag(cfg, p) for p in self._params]).T
         self._scale = np.array(
             [[p.max_main_thrust, p.max_vector_angle, p.max_tail_thrust] for p in self._params]

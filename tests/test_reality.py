@@ -12,9 +12,10 @@ import pytest
 import gpbf_env
 from gpbf_env import BlimpParams
 from gpbf_env.camera import euler_to_matrix
+from gpbf_env.coeffs import Coeffs, mass_matrix
 from gpbf_env.core import WorldConfig, observe
 from gpbf_env.dynamics import derivative, make_coeffs, rk4_step
-from gpbf_env.lab_dynamics import mass_matrix, motor_track, thrust_targets
+from gpbf_env.lab_dynamics import motor_track, thrust_targets
 from gpbf_env.reality import lab_effects
 
 ENV_ID = "gpbf_env/Blimp-v0"
@@ -31,27 +32,26 @@ def fly(params: BlimpParams, action: list[float], steps: int, reality: str = "la
 
 def test_static_thrust_sweep_has_the_dead_band_exponent_and_reverse_ratios() -> None:
     p = BlimpParams()
-    lab = make_coeffs([p], 0.25, 4, math, 1.0).lab
-    assert lab is not None
+    lab = make_coeffs([p], 0.25, 4, 1.0).table[0]
     for a in (-1.0, -0.5, -0.05, 0.0, 0.05, 0.3, 0.7, 1.0):
-        main, angle, tail = thrust_targets((a * p.max_main_thrust, 0.4, a * p.max_tail_thrust), lab)
+        main, angle, tail = thrust_targets(a * p.max_main_thrust, 0.4, a * p.max_tail_thrust, lab)
         reach = max((abs(a) - p.thrust_dead_band) / (1 - p.thrust_dead_band), 0.0) ** p.thrust_exponent
         back_main, back_tail = (p.reverse_main, p.reverse_tail) if a < 0 else (1.0, 1.0)
         assert main == pytest.approx(math.copysign(reach * back_main * p.max_main_thrust, a), abs=1e-15)
         assert tail == pytest.approx(math.copysign(reach * back_tail * p.max_tail_thrust, a), abs=1e-15)
         assert angle == 0.4
-    assert thrust_targets((p.max_main_thrust, 0.0, 0.0), lab)[0] == pytest.approx(p.max_main_thrust)
+    assert thrust_targets(p.max_main_thrust, 0.0, 0.0, lab)[0] == pytest.approx(p.max_main_thrust)
 
 
 def test_axial_inflow_cuts_thrust_as_momentum_theory_says() -> None:
     p = dataclasses.replace(CALM, cg_lateral=0.0)
-    c = make_coeffs([p], 0.25, 4, math, 1.0)
+    c = make_coeffs([p], 0.25, 4, 1.0)
     m = mass_matrix(p, lab_effects(p, 1.0))
     thrust = 0.1
     for speed in (0.0, 1.0, 2.0, 4.0, 6.0):
         state = [5, 3, 2, 0, 0, 0, speed, 0, 0, 0, 0, 0]
-        on = np.array(derivative(state, (thrust, 0.0, 0.0), (0, 0, 0), c, math)[6:])
-        off = np.array(derivative(state, (0.0, 0.0, 0.0), (0, 0, 0), c, math)[6:])
+        on = np.array(derivative(state, (thrust, 0.0, 0.0), (0.0, 0.0, 0.0), c)[6:])
+        off = np.array(derivative(state, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), c)[6:])
         force = m @ (on - off)  # generalised force of the fans alone
         assert force[0] == pytest.approx(thrust * max(0.0, 1 - speed / p.inflow_speed), rel=1e-9, abs=1e-15)
 
@@ -106,12 +106,13 @@ def test_rigid_body_with_low_cg_conserves_momentum_and_energy_without_drag() -> 
         lin_rot_drag=(0, 0, 0), quad_rot_drag=(0, 0, 0), lift_y_uv=0.0, lift_z_uw=0.0,
         moment_n_uv=0.0, moment_m_uw=0.0,
     )  # fmt: skip
-    c = make_coeffs([p], 0.25, 8, math, 1.0)
+    c = make_coeffs([p], 0.25, 8, 1.0)
     state = [5.0, 3.0, 2.0, 0.1, -0.2, 0.3, 0.4, -0.2, 0.1, 0.5, -0.3, 0.8]
     before = _momenta(p, state)
     motors = (0.0, 0.0, 0.0)
     for _ in range(40):
-        state, motors = rk4_step(state, motors, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), c, math)
+        state, motors, _ = rk4_step(state, motors, np.zeros(3), np.zeros(3), c)
+        state = state[:, 0]
     after = _momenta(p, state)
     for a, b in zip(before, after, strict=True):
         np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-9)
@@ -206,22 +207,29 @@ def test_presets_through_gymnasium_make_and_bad_settings_name_the_field() -> Non
         BlimpParams(thrust_dead_band=0.7)
 
 
+def _track(c: Coeffs, motors: tuple[float, ...], target: tuple[float, float, float]) -> np.ndarray:
+    """Motor states (2 n_sub + 1, 3) of blimp 0 over a step towards thrust ``target``."""
+    out = np.empty((c.half_times.size, 3))
+    motor_track(np.array(motors), target, c.decay[0], c.decay_up[0], c.half_times, c.table[0], out)
+    return out
+
+
 def test_fans_spin_up_faster_than_they_spin_down_and_the_servo_slews_at_its_rate() -> None:
     p = BlimpParams()
-    c = make_coeffs([p], 0.25, 4, math, 1.0)
-    assert c.lab is not None
-    t = c.lab.half_times
-    up = [m[0] for m in motor_track((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), c.decay, c.lab, math)]
-    down = [m[0] for m in motor_track((0.1, 0.0, 0.0), (0.0, 0.0, 0.0), c.decay, c.lab, math)]
+    c = make_coeffs([p], 0.25, 4, 1.0)
+    assert c.lab
+    t = c.half_times
+    up = _track(c, (0.0, 0.0, 0.0), (0.1, 0.0, 0.0))[:, 0]
+    down = _track(c, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0))[:, 0]
     for k, tk in enumerate(t):
         assert up[k] == pytest.approx(0.1 * (1 - math.exp(-tk / p.tau_spinup)), rel=1e-12, abs=1e-15)
         assert down[k] == pytest.approx(0.1 * math.exp(-tk / p.tau_main), rel=1e-12)
-    servo = [m[1] for m in motor_track((0.0, 0.0, 0.0), (0.0, 1.5, 0.0), c.decay, c.lab, math)]
+    servo = _track(c, (0.0, 0.0, 0.0), (0.0, 1.5, 0.0))[:, 1]
     for k, tk in enumerate(t):  # far from the target the slew rate binds, near it the lag
         lag_only = 1.5 * (1 - math.exp(-tk / p.tau_angle))
         assert servo[k] <= min(p.servo_rate * tk, lag_only) + 1e-12
     assert servo[2] == pytest.approx(p.servo_rate * t[2])  # still slewing after 62.5 ms
-    small = [m[1] for m in motor_track((0.0, 0.0, 0.0), (0.0, 0.2, 0.0), c.decay, c.lab, math)]
+    small = _track(c, (0.0, 0.0, 0.0), (0.0, 0.2, 0.0))[:, 1]
     assert small[-1] == pytest.approx(0.2 * (1 - math.exp(-t[-1] / p.tau_angle)))  # a small step: pure lag
 
 
@@ -232,6 +240,6 @@ def test_forward_thrust_slipstream_pitches_the_nose_down_and_reverse_thrust_does
     for thrust, expected in ((0.1, 0.1 * p.fin_slipstream), (-0.1, 0.0)):
         moments = []
         for params in (p, dataclasses.replace(p, fin_slipstream=0.0)):
-            c = make_coeffs([params], 0.25, 4, math, 1.0)
-            moments.append((m @ np.array(derivative(state, (thrust, 0.0, 0.0), (0, 0, 0), c, math)[6:]))[4])
+            c = make_coeffs([params], 0.25, 4, 1.0)
+            moments.append((m @ np.array(derivative(state, (thrust, 0.0, 0.0), (0.0, 0.0, 0.0), c)[6:]))[4])
         assert moments[0] - moments[1] == pytest.approx(expected, abs=1e-15)
