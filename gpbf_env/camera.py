@@ -28,7 +28,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from gpbf_env.outline import fit_points, outline_kernel
+from gpbf_env.outline import CAMERA_COLUMNS, fit_points, outline_kernel
 
 __all__ = ["Camera", "default_cameras", "ellipse_from_points", "euler_to_matrix", "outline_ellipses"]
 
@@ -218,12 +218,17 @@ def outline_ellipses(
     visible: (N, C) bool
         The whole envelope is in front of the camera and the ellipse centre is in the image.
     """
-    n, c = position.shape[0], len(cameras)
-    axes2 = np.square(np.asarray(semi_axes, dtype=np.float64))
-    noise = np.zeros((n, c, N_BOUNDARY, 2)) if noise_px is None else np.asarray(noise_px, dtype=np.float64)
-    out, visible = np.zeros((n, c, 5)), np.zeros((n, c), dtype=bool)
+    pos = np.ascontiguousarray(position, dtype=np.float64)
+    n, c = pos.shape[0], len(cameras)
     rot = np.ascontiguousarray(rotation, dtype=np.float64)
-    outline_kernel(np.ascontiguousarray(position, dtype=np.float64), rot, axes2, *_camera_arrays(cameras),
+    noise = np.zeros((n, c, N_BOUNDARY, 2)) if noise_px is None else np.asarray(noise_px, dtype=np.float64)
+    for name, arr, shape in (("position", pos, (n, 3)), ("rotation", rot, (n, 3, 3)),
+                             ("noise_px", noise, (n, c, N_BOUNDARY, 2))):  # fmt: skip
+        if arr.shape != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    axes2 = np.square(np.asarray(semi_axes, dtype=np.float64))
+    out, visible = np.zeros((n, c, 5)), np.zeros((n, c), dtype=bool)
+    outline_kernel(pos, rot, axes2, *_camera_arrays(cameras),
                    _CIRCLE, np.ascontiguousarray(noise), out, visible)  # fmt: skip
     return out, visible
 
@@ -235,7 +240,7 @@ _CAMERA_ARRAYS: dict[int, tuple[tuple[Camera, ...], tuple[FloatArray, FloatArray
 
 
 def _camera_arrays(cameras: tuple[Camera, ...]) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rotations (C, 3, 3), positions (C, 3) and ``(focal, cx, cy, k1, k2, width, height)`` (C, 7)."""
+    """Rotations (C, 3, 3), positions (C, 3) and the :data:`~gpbf_env.outline.CAMERA_COLUMNS` (C, 7)."""
     entry = _CAMERA_ARRAYS.get(id(cameras))
     if entry is None or entry[0] is not cameras:
         if len(_CAMERA_ARRAYS) >= _CAMERA_ARRAYS_KEPT:  # bounded: ad-hoc camera sets come and go
@@ -243,7 +248,9 @@ def _camera_arrays(cameras: tuple[Camera, ...]) -> tuple[FloatArray, FloatArray,
         arrays = (
             np.stack([cam.rotation for cam in cameras]).astype(np.float64),
             np.stack([cam.position for cam in cameras]).astype(np.float64),
-            np.array([[cam.focal, *cam.principal_point, cam.k1, cam.k2, *cam.size] for cam in cameras]),
+            np.array(
+                [[cam.focal, *cam.principal_point, cam.k1, cam.k2, *cam.size] for cam in cameras]
+            ).reshape(len(cameras), len(CAMERA_COLUMNS)),
         )
         entry = _CAMERA_ARRAYS[id(cameras)] = (cameras, arrays)
     return entry[1]

@@ -34,7 +34,7 @@ MINV = 41  # 36 columns: the inverse 6x6 mass matrix, row by row
 N_COLUMNS = MINV + 36
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: identity, not elementwise, equality
 class Coeffs:
     """Constants of ``N`` blimps for :func:`gpbf_env.dynamics.rk4_step`.
 
@@ -112,10 +112,11 @@ def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, strength: 
         textbook world.
     """
     lab = strength > 0
+    effects = [lab_effects(p, strength) for p in params] if lab else []
     rows = []
-    for p in params:
+    for i, p in enumerate(params):
         row = _textbook_row(p)
-        row += _lab_row(p, lab_effects(p, strength)) if lab else [0.0] * (N_COLUMNS - len(row))
+        row += _lab_row(p, effects[i]) if lab else [0.0] * (N_COLUMNS - len(row))
         rows.append(row)
     table = np.asarray(rows, dtype=np.float64).reshape(len(params), N_COLUMNS)
     h = dt / n_sub
@@ -123,7 +124,6 @@ def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, strength: 
     taus = np.array([[p.tau_main, p.tau_angle, p.tau_tail] for p in params])
     decay = np.exp(-half_times[None, :, None] / taus[:, None, :])
     if lab:
-        effects = [lab_effects(p, strength) for p in params]
         tau_up = np.array([[e.tau_up_main, e.tau_up_tail] for e in effects])
         decay_up = np.exp(-half_times[None, :, None] / tau_up[:, None, :])
     else:

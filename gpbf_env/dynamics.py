@@ -178,18 +178,31 @@ def rk4_step(
         The state at the start and after every sub-step (angles not yet wrapped).
     """
     n = c.table.shape[0]
-    out = np.array(state, dtype=np.float64).reshape(12, n)
-    mot = np.array(motors, dtype=np.float64).reshape(3, n)
+    out = _columns(state, 12, n, "state").copy()
+    mot = _columns(motors, 3, n, "motors").copy()
+    cmd, gust = _columns(command, 3, n, "command"), _columns(wind, 3, n, "wind")
     knots = np.empty((c.n_sub + 1, 12, n))
-    cmd = np.ascontiguousarray(command, dtype=np.float64).reshape(3, n)
-    gust = np.ascontiguousarray(wind, dtype=np.float64).reshape(3, n)
     rk4_batch(out, mot, cmd, gust, c.table, c.decay, c.decay_up, c.half_times, c.h, c.lab, knots)
     return out, mot, knots
 
 
+def _columns(value: object, rows: int, n: int, name: str) -> FloatArray:
+    """``value`` as a contiguous ``(rows, n)`` float array (``(rows,)`` for one blimp), else
+    a ValueError naming ``name``."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape not in ((rows, n), (rows,) if n == 1 else (rows, n)):
+        raise ValueError(f"{name} must have shape ({rows}, {n}), got {arr.shape}")
+    return np.ascontiguousarray(arr.reshape(rows, n))
+
+
 def derivative(state: FloatArray, motors: FloatArray, wind: FloatArray, c: Coeffs) -> FloatArray:
     """Time derivative (12,) of one blimp's state (12,) under motor states and wind (3,)."""
+    if c.table.shape[0] != 1:
+        raise ValueError(f"derivative takes the constants of one blimp, got {c.table.shape[0]}")
     out = np.empty(12)
-    as_vec = [np.ascontiguousarray(v, dtype=np.float64) for v in (state, motors, wind)]
-    _derivative(*as_vec, c.table[0], c.lab, out)
+    s, m, w = (
+        _columns(v, k, 1, name)[:, 0]
+        for v, k, name in ((state, 12, "state"), (motors, 3, "motors"), (wind, 3, "wind"))
+    )
+    _derivative(s, m, w, c.table[0], c.lab, out)
     return out

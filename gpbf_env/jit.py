@@ -1,15 +1,79 @@
 """The one compilation setting of the simulator's numba kernels.
 
-``cache=True`` stores the machine code beside the modules (or in the user's cache when
-the package is read-only), so only the first process on a machine compiles (seconds);
-``error_model="numpy"`` makes a division by zero give inf or nan as the array code did,
-instead of raising.
+:func:`kernel` compiles with ``error_model="numpy"`` (a division by zero gives inf or nan,
+as the array code did, instead of raising) and caches the machine code, so only the first
+process on a machine compiles (seconds). Numba checks only the defining file of a cached
+function, yet the kernels inline each other and the coefficient layout of
+:mod:`gpbf_env.coeffs`; the cache therefore lives in a folder named after a hash of every
+kernel source file (:data:`KERNEL_SOURCES`), so an edit to any of them, or another git
+checkout, compiles afresh instead of running stale code. Where no folder is writable
+the kernels compile in every process, uncached.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
 from numba import njit
+from numba.core import config
 
-__all__ = ["kernel"]
+__all__ = ["CACHE_DIR", "KERNEL_SOURCES", "kernel"]
 
-kernel = njit(cache=True, error_model="numpy")
+F = TypeVar("F", bound=Callable[..., Any])
+_HERE = Path(__file__).resolve().parent
+#: the modules whose source enters compiled kernels (their own or inlined)
+KERNEL_SOURCES = ("coeffs.py", "dynamics.py", "jit.py", "lab_dynamics.py", "mocap_kernel.py", "outline.py")
+_PREFIX = "numba-"
+
+
+def _digest() -> str:
+    h = hashlib.sha256()
+    for name in KERNEL_SOURCES:
+        h.update((_HERE / name).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _writable(folder: Path) -> bool:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(folder, os.W_OK)
+
+
+def _cache_dir() -> Path | None:
+    """The package's ``__pycache__/numba-<hash>`` (stale siblings removed), else one in the
+    temporary folder, else None (no caching)."""
+    name = _PREFIX + _digest()
+    home = _HERE / "__pycache__"
+    for folder in (
+        home / name,
+        Path(tempfile.gettempdir()) / f"gpbf-{getattr(os, 'getuid', lambda: 0)()}" / name,
+    ):
+        if _writable(folder):
+            for old in folder.parent.glob(_PREFIX + "*"):
+                if old != folder:
+                    shutil.rmtree(old, ignore_errors=True)  # another process may hold it: best effort
+            return folder
+    return None
+
+
+CACHE_DIR = _cache_dir()
+
+
+def kernel(func: F) -> F:
+    """``func`` compiled by numba (nopython, numpy error model), cached in :data:`CACHE_DIR`."""
+    if CACHE_DIR is None:
+        return njit(cache=False, error_model="numpy")(func)
+    saved = config.CACHE_DIR
+    config.CACHE_DIR = str(CACHE_DIR)  # read once, when the dispatcher picks its cache locator
+    try:
+        return njit(cache=True, error_model="numpy")(func)
+    finally:
+        config.CACHE_DIR = saved

@@ -134,7 +134,11 @@ def measure(track: PoseTrack, noise: FloatArray) -> FloatArray:
     noise: (N, AUX_DRAWS)
         Standard normal draws; the first ``12 * 6`` are used.
     """
-    out = np.empty((noise.shape[0], 12))
+    n = track._buf.shape[3]
+    noise = np.ascontiguousarray(noise, dtype=np.float64)
+    if noise.ndim != 2 or noise.shape[0] != n or noise.shape[1] < MOCAP_SAMPLES * 6:
+        raise ValueError(f"noise must have shape ({n}, >= {MOCAP_SAMPLES * 6}), got {noise.shape}")
+    out = np.empty((n, 12))
     measure_kernel(
         track._buf, track._slope_at, track._slope_w, np.ascontiguousarray(noise), _STD, _SLOPE, out
     )

@@ -16,7 +16,11 @@ from numpy.typing import NDArray
 
 from gpbf_env.jit import kernel
 
-__all__ = ["fit_points", "outline_kernel"]
+__all__ = ["CAMERA_COLUMNS", "fit_points", "outline_kernel"]
+
+#: the columns of a camera's row in the kernel's camera table (pixels; k1, k2 radial terms)
+CAMERA_COLUMNS = ("focal", "cx", "cy", "k1", "k2", "width", "height")
+FOCAL, CX, CY, K1, K2, WIDTH, HEIGHT = range(len(CAMERA_COLUMNS))
 
 FloatArray = NDArray[np.float64]
 _HALF_PI = math.pi / 2
@@ -103,7 +107,7 @@ def _sample(
     ``cam`` is ``(focal, cx, cy, k1, k2, ...)``, ``noise`` (K, 2) pixel noise.
     """
     ex, ey, wd, ht, ang = ellipse
-    f, px, py, k1, k2 = cam[0], cam[1], cam[2], cam[3], cam[4]
+    f, px, py, k1, k2 = cam[FOCAL], cam[CX], cam[CY], cam[K1], cam[K2]
     a1, a2 = 0.5 * wd, 0.5 * ht
     c1, s1 = math.cos(ang), math.sin(ang)
     for i in range(pts.shape[0]):
@@ -124,14 +128,15 @@ def outline_kernel(
 
     ``position`` (N, 3), ``rotation`` (N, 3, 3), ``axes2`` (3,) squared semi-axes;
     ``cam_rot`` (C, 3, 3), ``cam_pos`` (C, 3), ``cam_k`` (C, 7) rows of
-    ``(focal, cx, cy, k1, k2, width, height)`` with ``(cx, cy)`` the principal point;
+    :data:`CAMERA_COLUMNS` with ``(cx, cy)`` the principal point;
     ``circle`` (K, 2) unit-circle samples; ``noise`` (N, C, K, 2) pixel noise.
     """
     n_pts = circle.shape[0]
     pts = np.empty((n_pts, 2))
     for n in range(position.shape[0]):
         for k in range(cam_rot.shape[0]):
-            f, px, py, width, height = cam_k[k, 0], cam_k[k, 1], cam_k[k, 2], cam_k[k, 5], cam_k[k, 6]
+            f, px, py = cam_k[k, FOCAL], cam_k[k, CX], cam_k[k, CY]
+            width, height = cam_k[k, WIDTH], cam_k[k, HEIGHT]
             m, depth = _conic(rotation[n], position[n], cam_rot[k], cam_pos[k], axes2)
             cstar = _project(m, f, px, py)
             denom = -cstar[2, 2]

@@ -11,11 +11,12 @@ import pytest
 
 import gpbf_env
 from gpbf_env import BlimpParams
-from gpbf_env.camera import euler_to_matrix
+from gpbf_env.camera import euler_to_matrix, outline_ellipses
 from gpbf_env.coeffs import Coeffs, mass_matrix
 from gpbf_env.core import WorldConfig, observe
 from gpbf_env.dynamics import derivative, make_coeffs, rk4_step
 from gpbf_env.lab_dynamics import motor_track, thrust_targets
+from gpbf_env.mocap import AUX_DRAWS, PoseTrack, measure
 from gpbf_env.reality import lab_effects
 
 ENV_ID = "gpbf_env/Blimp-v0"
@@ -243,3 +244,23 @@ def test_forward_thrust_slipstream_pitches_the_nose_down_and_reverse_thrust_does
             c = make_coeffs([params], 0.25, 4, 1.0)
             moments.append((m @ np.array(derivative(state, (thrust, 0.0, 0.0), (0.0, 0.0, 0.0), c)[6:]))[4])
         assert moments[0] - moments[1] == pytest.approx(expected, abs=1e-15)
+
+
+def test_compiled_kernels_refuse_misshapen_arrays_naming_them() -> None:
+    """The kernels do not check bounds: their Python entry points check every shape."""
+    c = make_coeffs([BlimpParams(), BlimpParams()], 0.25, 4, 1.0)
+    with pytest.raises(ValueError, match="state must have shape"):
+        rk4_step(np.zeros((2, 12)), np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((3, 2)), c)
+    with pytest.raises(ValueError, match="wind must have shape"):
+        rk4_step(np.zeros((12, 2)), np.zeros((3, 2)), np.zeros((3, 2)), np.zeros(3), c)
+    with pytest.raises(ValueError, match="one blimp"):
+        derivative(np.zeros(12), np.zeros(3), np.zeros(3), c)
+    cfg = WorldConfig()
+    rot = euler_to_matrix(np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="noise_px must have shape"):
+        outline_ellipses(cfg.cameras, np.ones((2, 3)), rot, cfg.semi_axes, np.zeros((2, 1, 16, 2)))
+    with pytest.raises(ValueError, match="rotation must have shape"):
+        outline_ellipses(cfg.cameras, np.ones((3, 3)), rot, cfg.semi_axes)
+    track = PoseTrack(2, 4, 0.25, 3)
+    with pytest.raises(ValueError, match="noise must have shape"):
+        measure(track, np.zeros((1, AUX_DRAWS)))
