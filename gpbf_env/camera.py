@@ -235,22 +235,14 @@ def outline_ellipses(
 
 _ANGLES = np.linspace(0.0, 2 * math.pi, N_BOUNDARY, endpoint=False)
 _CIRCLE = np.stack([np.cos(_ANGLES), np.sin(_ANGLES)], axis=-1)  # (K, 2) unit-circle samples
-_CAMERA_ARRAYS_KEPT = 64
-_CAMERA_ARRAYS: dict[int, tuple[tuple[Camera, ...], tuple[FloatArray, FloatArray, FloatArray]]] = {}
 
 
 def _camera_arrays(cameras: tuple[Camera, ...]) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Rotations (C, 3, 3), positions (C, 3) and the :data:`~gpbf_env.outline.CAMERA_COLUMNS` (C, 7)."""
-    entry = _CAMERA_ARRAYS.get(id(cameras))
-    if entry is None or entry[0] is not cameras:
-        if len(_CAMERA_ARRAYS) >= _CAMERA_ARRAYS_KEPT:  # bounded: ad-hoc camera sets come and go
-            _CAMERA_ARRAYS.clear()
-        arrays = (
-            np.stack([cam.rotation for cam in cameras]).astype(np.float64),
-            np.stack([cam.position for cam in cameras]).astype(np.float64),
-            np.array(
-                [[cam.focal, *cam.principal_point, cam.k1, cam.k2, *cam.size] for cam in cameras]
-            ).reshape(len(cameras), len(CAMERA_COLUMNS)),
-        )
-        entry = _CAMERA_ARRAYS[id(cameras)] = (cameras, arrays)
-    return entry[1]
+    return (
+        np.stack([cam.rotation for cam in cameras]).astype(np.float64),
+        np.stack([cam.position for cam in cameras]).astype(np.float64),
+        np.array([[cam.focal, *cam.principal_point, cam.k1, cam.k2, *cam.size] for cam in cameras]).reshape(
+            len(cameras), len(CAMERA_COLUMNS)
+        ),
+    )

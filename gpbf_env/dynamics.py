@@ -24,7 +24,7 @@ from gpbf_env.coeffs import Coeffs, make_coeffs
 from gpbf_env.jit import kernel
 from gpbf_env.lab_dynamics import inflow_loss, lab_rates, motor_track, thrust_targets
 
-__all__ = ["Coeffs", "derivative", "make_coeffs", "rk4_step", "wrap_angle"]
+__all__ = ["Coeffs", "derivative", "make_coeffs", "rk4_step", "rotation", "wrap_angle"]
 
 FloatArray = NDArray[np.float64]
 _TWO_PI = 2.0 * math.pi
@@ -37,17 +37,26 @@ def wrap_angle(a: Any) -> Any:
 
 
 @kernel
+def rotation(phi: float, th: float, psi: float) -> tuple[float, ...]:
+    """Body-to-world rotation ``Rz(psi) Ry(th) Rx(phi)`` row by row ``(r11, r12, ..., r33)``,
+    then ``(sin, cos)`` of roll and pitch."""
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(th), math.cos(th)
+    sp, cp = math.sin(psi), math.cos(psi)
+    return (
+        cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf,
+        sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf,
+        -st, ct * sf, ct * cf, sf, cf, st, ct,
+    )  # fmt: skip
+
+
+@kernel
 def _derivative(
     s: FloatArray, mot: FloatArray, wind: FloatArray, k: FloatArray, lab: bool, out: FloatArray
 ) -> None:
     """Time derivative ``out`` (12,) of state ``s`` (12,); paper eq. (30) plus drag, lift, gusts."""
     phi, th, psi, u, v, w, p, q, r = s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11]
-    sf, cf = math.sin(phi), math.cos(phi)
-    st, ct = math.sin(th), math.cos(th)
-    sp, cp = math.sin(psi), math.cos(psi)
-    r11, r12, r13 = cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf
-    r21, r22, r23 = sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf
-    r31, r32, r33 = -st, ct * sf, ct * cf
+    r11, r12, r13, r21, r22, r23, r31, r32, r33, sf, cf, st, ct = rotation(phi, th, psi)
     wx, wy, wz = wind[0], wind[1], wind[2]
     ur = u - (r11 * wx + r21 * wy + r31 * wz)
     vr = v - (r12 * wx + r22 * wy + r32 * wz)
@@ -100,10 +109,11 @@ def _motor_states(
 @kernel
 def _rk4_one(
     s: FloatArray, track: FloatArray, wind: FloatArray, k: FloatArray, lab: bool, h: float, n_sub: int,
-    knots: FloatArray, b: int,
+    knots: FloatArray, b: int, scratch: FloatArray,
 ) -> None:  # fmt: skip
-    """Integrate state ``s`` (12,) of blimp ``b`` over one env step in place."""
-    k1, k2, k3, k4, tmp = np.empty(12), np.empty(12), np.empty(12), np.empty(12), np.empty(12)
+    """Integrate state ``s`` (12,) of blimp ``b`` over one env step in place (``scratch``:
+    (5, 12) work space)."""
+    k1, k2, k3, k4, tmp = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4]
     for i in range(12):
         knots[0, i, b] = s[i]
     for j in range(n_sub):
@@ -135,7 +145,7 @@ def rk4_batch(
     """
     n_sub = knots.shape[0] - 1
     s, m0, cmd, gust = np.empty(12), np.empty(3), np.empty(3), np.empty(3)
-    track = np.empty((half_times.shape[0], 3))
+    track, scratch = np.empty((half_times.shape[0], 3)), np.empty((5, 12))
     for b in range(state.shape[1]):
         for i in range(12):
             s[i] = state[i, b]
@@ -143,7 +153,7 @@ def rk4_batch(
             m0[i], cmd[i], gust[i] = motors[i, b], command[i, b], wind[i, b]
         k = table[b]
         _motor_states(m0, cmd, decay[b], decay_up[b], half_times, k, lab, track)
-        _rk4_one(s, track, gust, k, lab, h, n_sub, knots, b)
+        _rk4_one(s, track, gust, k, lab, h, n_sub, knots, b, scratch)
         for i in range(12):
             state[i, b] = s[i]
         for i in (3, 4, 5):

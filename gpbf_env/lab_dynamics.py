@@ -31,7 +31,7 @@ _TINY = 1e-300
 
 @kernel
 def _pos(x: float) -> float:
-    return 0.5 * (x + abs(x))
+    return max(x, 0.0)
 
 
 @kernel

@@ -3,12 +3,10 @@ motion-capture fit, scalar code per blimp (numba) with the array code's operatio
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numpy.typing import NDArray
 
-from gpbf_env.dynamics import wrap_angle
+from gpbf_env.dynamics import rotation, wrap_angle
 from gpbf_env.jit import kernel
 
 __all__ = ["measure_kernel", "pose_rates"]
@@ -25,13 +23,11 @@ def pose_rates(knots: FloatArray, out: FloatArray) -> None:
             phi, th, psi = knots[j, 3, b], knots[j, 4, b], knots[j, 5, b]
             u, v, w = knots[j, 6, b], knots[j, 7, b], knots[j, 8, b]
             p, q, r = knots[j, 9, b], knots[j, 10, b], knots[j, 11, b]
-            sf, cf, st, ct = math.sin(phi), math.cos(phi), math.sin(th), math.cos(th)
-            sp, cp = math.sin(psi), math.cos(psi)
+            r11, r12, r13, r21, r22, r23, r31, r32, r33, sf, cf, st, ct = rotation(phi, th, psi)
             tq = (q * sf + r * cf) / ct
-            a, c = st * sf, st * cf  # shared factors of the rotation's rows
-            out[j, 0, b] = cp * ct * u + (cp * a - sp * cf) * v + (cp * c + sp * sf) * w
-            out[j, 1, b] = sp * ct * u + (sp * a + cp * cf) * v + (sp * c - cp * sf) * w
-            out[j, 2, b] = -st * u + ct * sf * v + ct * cf * w
+            out[j, 0, b] = r11 * u + r12 * v + r13 * w
+            out[j, 1, b] = r21 * u + r22 * v + r23 * w
+            out[j, 2, b] = r31 * u + r32 * v + r33 * w
             out[j, 3, b] = p + st * tq
             out[j, 4, b] = q * cf - r * sf
             out[j, 5, b] = tq
@@ -63,15 +59,12 @@ def measure_kernel(
             for m in range(slope.shape[0]):
                 acc = acc + slope[m] * (noise[b, 6 * m + i] * std[i])
             d[i] = acc
-        sf, cf, st, ct = math.sin(pose[3]), math.cos(pose[3]), math.sin(pose[4]), math.cos(pose[4])
-        sp, cp = math.sin(pose[5]), math.cos(pose[5])
-        rot = ((cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf),
-               (sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf),
-               (-st, ct * sf, ct * cf))  # fmt: skip
+        rot = rotation(pose[3], pose[4], pose[5])
+        sf, cf, st, ct = rot[9], rot[10], rot[11], rot[12]
         for i in range(6):
             out[b, i] = pose[i]
         for j in range(3):
-            out[b, 6 + j] = rot[0][j] * d[0] + rot[1][j] * d[1] + rot[2][j] * d[2]
+            out[b, 6 + j] = rot[j] * d[0] + rot[3 + j] * d[1] + rot[6 + j] * d[2]
         out[b, 9] = d[3] - st * d[5]
         out[b, 10] = cf * d[4] + sf * ct * d[5]
         out[b, 11] = -sf * d[4] + cf * ct * d[5]
