@@ -112,9 +112,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         self._aux = np.random.default_rng(0)  # replaced at reset
         self._lag = camera_lag(self.config, self._params)
         self._mocap = np.zeros(12)
-        self._state = [0.0] * 12
-        self._motors: tuple[float, ...] = (0.0, 0.0, 0.0)
-        self._wind = [0.0, 0.0, 0.0]
+        self._state, self._motors, self._wind = np.zeros(12), np.zeros(3), np.zeros(3)
         self._step = 0
         self._goals = np.zeros((1, 4))
         self._goal_index = 0
@@ -150,9 +148,8 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
             self._coeffs = self._make_coeffs(params)
             self._params = params
             self._lag = camera_lag(cfg, params)
-        self._state = [float(v) for v in state]
-        self._motors = (0.0, 0.0, 0.0)
-        self._wind = list(rng.normal(0.0, params.gust_std, size=3))
+        self._state, self._motors = np.array(state, dtype=np.float64), np.zeros(3)
+        self._wind = rng.normal(0.0, params.gust_std, size=3)
         self._step, self._goals, self._goal_index, self._finished = 0, goals, 0, False
         self._trail = [state[:3].copy()]
         self._aux = rng.spawn(1)[0]
@@ -164,11 +161,9 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         a = check_action(action)
         cfg = self.config
         cmd = cfg.map_action(a[None, :], self._params)[0]
-        previous = np.array(self._state[:3])
-        state, motors, knots = rk4_step(
-            np.array(self._state), np.array(self._motors), cmd, np.array(self._wind), self._coeffs
-        )
-        self._state, self._motors = state[:, 0].tolist(), tuple(motors[:, 0].tolist())
+        previous = self._state[:3].copy()
+        state, motors, knots = rk4_step(self._state, self._motors, cmd, self._wind, self._coeffs)
+        self._state, self._motors = state[:, 0], motors[:, 0]
         self._track.push(knots)
         noise = self.np_random.standard_normal(cfg.noise_size)
         self._advance_wind(noise[:3])
@@ -219,7 +214,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
         p = self._params
         a = math.exp(-self.config.dt / p.gust_tau)
         s = p.gust_std * math.sqrt(1.0 - a * a)
-        self._wind = [a * w + s * float(zi) for w, zi in zip(self._wind, z, strict=True)]
+        self._wind = a * self._wind + s * z
 
     def _make_coeffs(self, params: BlimpParams) -> Coeffs:
         cfg = self.config

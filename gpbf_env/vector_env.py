@@ -94,7 +94,7 @@ class BlimpVectorEnv(VectorEnv):
         self._track = PoseTrack(n, self.config.substeps, self.config.dt, self.config.track_depth)
         self._mocap = np.zeros((n, 12))
         self._state = np.zeros((12, n))
-        self._motors = tuple(np.zeros(n) for _ in range(3))
+        self._motors = np.zeros((3, n))
         self._wind = np.zeros((3, n))
         self._steps = np.zeros(n, dtype=np.int64)
         n_goals = 1 if self.config.task == "hover" else 4
@@ -170,13 +170,11 @@ class BlimpVectorEnv(VectorEnv):
         cfg = self.config
         cmd = np.clip(a, -1.0, 1.0) * self._scale
         previous = self._state[:3].T.copy()
-        state, motors, knots = rk4_step(self._state, np.stack(self._motors), cmd.T, self._wind, self._coeffs)
+        state, motors, knots = rk4_step(self._state, self._motors, cmd.T, self._wind, self._coeffs)
         self._track.push(knots)
         noise = np.zeros((n, cfg.noise_size - 3))
         self._state[:, moving] = state[:, moving]
-        self._motors = tuple(
-            np.where(self._autoreset, m0, m1) for m0, m1 in zip(self._motors, motors, strict=True)
-        )
+        self._motors = np.where(self._autoreset, self._motors, motors)
         if moving.size:
             draws = np.stack([self._rngs[i].standard_normal(cfg.noise_size) for i in moving])
             self._advance_wind(moving, draws[:, :3])
@@ -293,8 +291,7 @@ class BlimpVectorEnv(VectorEnv):
         if changed:
             self._rebuild_coeffs()
         self._track.reset_rows(rows, self._state[:, rows].T)
-        for m in self._motors:
-            m[rows] = 0.0
+        self._motors[:, rows] = 0.0
         self._steps[rows] = 0
         self._goal_index[rows] = 0
         self._finished[rows] = False
@@ -361,7 +358,7 @@ class BlimpVectorEnv(VectorEnv):
             "t": self._steps * self.config.dt,
             "goal": self._goals[np.arange(n), self._goal_index].copy(),
             "waypoint_index": self._goal_index.copy(),
-            "motors": np.stack(self._motors, axis=1),
+            "motors": self._motors.T.copy(),
             "mocap": self._mocap.copy(),
         }
         info: dict[str, NDArray[Any]] = {}
