@@ -113,11 +113,9 @@ def make_coeffs(params: Sequence[BlimpParams], dt: float, n_sub: int, strength: 
     """
     lab = strength > 0
     effects = [lab_effects(p, strength) for p in params] if lab else []
-    rows = []
-    for i, p in enumerate(params):
-        row = _textbook_row(p)
-        row += _lab_row(p, effects[i]) if lab else [0.0] * (N_COLUMNS - len(row))
-        rows.append(row)
+    rows = [_textbook_row(p) for p in params]
+    for row, p, e in zip(rows, params, effects or [None] * len(params), strict=True):
+        row += _lab_row(p, e) if e is not None else [0.0] * (N_COLUMNS - len(row))
     table = np.asarray(rows, dtype=np.float64).reshape(len(params), N_COLUMNS)
     h = dt / n_sub
     half_times = np.arange(2 * n_sub + 1) * h / 2

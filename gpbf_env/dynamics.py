@@ -200,7 +200,7 @@ def _columns(value: object, rows: int, n: int, name: str) -> FloatArray:
     """``value`` as a contiguous ``(rows, n)`` float array (``(rows,)`` for one blimp), else
     a ValueError naming ``name``."""
     arr = np.asarray(value, dtype=np.float64)
-    if arr.shape not in ((rows, n), (rows,) if n == 1 else (rows, n)):
+    if arr.shape != (rows, n) and not (n == 1 and arr.shape == (rows,)):
         raise ValueError(f"{name} must have shape ({rows}, {n}), got {arr.shape}")
     return np.ascontiguousarray(arr.reshape(rows, n))
 

@@ -139,7 +139,5 @@ def measure(track: PoseTrack, noise: FloatArray) -> FloatArray:
     if noise.ndim != 2 or noise.shape[0] != n or noise.shape[1] < MOCAP_SAMPLES * 6:
         raise ValueError(f"noise must have shape ({n}, >= {MOCAP_SAMPLES * 6}), got {noise.shape}")
     out = np.empty((n, 12))
-    measure_kernel(
-        track._buf, track._slope_at, track._slope_w, np.ascontiguousarray(noise), _STD, _SLOPE, out
-    )
+    measure_kernel(track._buf, track._slope_at, track._slope_w, noise, _STD, _SLOPE, out)
     return out
