@@ -47,24 +47,26 @@ def _writable(folder: Path) -> bool:
     return os.access(folder, os.W_OK)
 
 
-def _cache_dir() -> Path | None:
-    """The package's ``__pycache__/numba-<hash>`` (stale siblings removed), else one in the
-    temporary folder, else None (no caching)."""
-    name = _PREFIX + _digest()
-    home = _HERE / "__pycache__"
-    for folder in (
-        home / name,
-        Path(tempfile.gettempdir()) / f"gpbf-{getattr(os, 'getuid', lambda: 0)()}" / name,
-    ):
+def _cache_dir(home: Path, shared: Path, name: str) -> Path | None:
+    """``home/name`` (the package's own ``__pycache__``; its stale ``numba-*`` siblings are
+    removed, since only this install writes there), else ``shared/name`` in the temporary
+    folder, which other installs of other versions share (nothing is removed there: each
+    would delete the other's cache and recompile in every process), else None (no caching)."""
+    for folder in (home / name, shared / name):
         if _writable(folder):
-            for old in folder.parent.glob(_PREFIX + "*"):
-                if old != folder:
-                    shutil.rmtree(old, ignore_errors=True)  # another process may hold it: best effort
+            if folder.parent == home:
+                for old in home.glob(_PREFIX + "*"):
+                    if old != folder:
+                        shutil.rmtree(old, ignore_errors=True)  # another process may hold it: best effort
             return folder
     return None
 
 
-CACHE_DIR = _cache_dir()
+CACHE_DIR = _cache_dir(
+    _HERE / "__pycache__",
+    Path(tempfile.gettempdir()) / f"gpbf-{getattr(os, 'getuid', lambda: 0)()}",
+    _PREFIX + _digest(),
+)
 
 
 def kernel(func: F) -> F:

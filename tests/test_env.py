@@ -418,3 +418,20 @@ def test_waypoint_progress_telescopes_to_the_distance_covered() -> None:
     # the first leg's progress sums to progress weight x (start distance - end distance)
     assert progress == pytest.approx(weights.progress * (start - info["distance_m"]), rel=1e-9)
     assert bonus_steps == 1 and info["distance_m"] < weights.reach_radius
+
+
+def test_kernel_cache_prunes_only_its_own_folder(tmp_path) -> None:
+    """Stale ``numba-*`` caches are removed from the package's ``__pycache__``, never from
+    the temporary folder that installs of other versions share."""
+    from gpbf_env.jit import _cache_dir
+
+    home, shared = tmp_path / "pkg" / "__pycache__", tmp_path / "shared"
+    (home / "numba-old").mkdir(parents=True)
+    (shared / "numba-other").mkdir(parents=True)
+    assert _cache_dir(home, shared, "numba-new") == home / "numba-new"
+    assert not (home / "numba-old").exists() and (shared / "numba-other").exists()
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    assert _cache_dir(blocked / "__pycache__", shared, "numba-new") == shared / "numba-new"
+    assert (shared / "numba-other").exists()
+    assert _cache_dir(blocked / "x", blocked / "y", "numba-new") is None

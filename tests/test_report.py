@@ -1,11 +1,14 @@
-"""The report's Table 7 measure and the orderings it checks."""
+"""The report's Table 7 measure, the orderings it checks, and its hand-written notes."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
 from agents.experiments.measures import aggregate_gain, improvement
 from agents.experiments.report import _checks, _filter_checks
+from agents.experiments.report_notes import NOTES_MARKER, write_keeping_notes
 from agents.experiments.report_why import WHY
 
 
@@ -59,3 +62,19 @@ def test_ukf_against_ekf_averages_the_groups_and_failed_claims_get_their_explana
     assert row.endswith("| **no** |")
     explanation = dict(WHY)["GP-UKF edges out"]
     assert f"- {explanation}" in lines
+
+
+def test_a_regenerated_report_keeps_its_hand_written_notes_once(tmp_path: Path) -> None:
+    path = tmp_path / "report.md"
+    write_keeping_notes(path, ["# Report", "", "| a | 1 |"])
+    assert path.read_text() == "# Report\n\n| a | 1 |\n"
+    notes = f"{NOTES_MARKER}\n## Reading the table\n\nthe measured cause\n"
+    path.write_text(path.read_text() + "\n" + notes)
+    write_keeping_notes(path, ["# Report", "", "| a | 2 |", ""])
+    text = path.read_text()
+    assert text == "# Report\n\n| a | 2 |\n\n" + notes
+    write_keeping_notes(path, ["# Report", "", "| a | 2 |"])
+    assert path.read_text() == text  # idempotent: the notes are not repeated
+    path.write_text("# Report\n\n| a | 1 |\n\nno marker: generated text only\n")
+    write_keeping_notes(path, ["# Report"])
+    assert path.read_text() == "# Report\n"

@@ -382,6 +382,11 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     report = (tmp_path / "report.md").read_text()
     assert "agent-data loop" in report and "WaypointPilot" in report
     assert "agent `hover-state-0` flew" in report
+    from agents.experiments.report_notes import NOTES_MARKER
+
+    (tmp_path / "report.md").write_text(f"{report}\n{NOTES_MARKER}\n## Reading the table\n")
+    write_report(tmp_path, data)  # regenerated: the hand-written section stays
+    assert (tmp_path / "report.md").read_text().endswith(f"\n{NOTES_MARKER}\n## Reading the table\n")
     assert (tmp_path / "learning_curves.png").exists() and (tmp_path / "returns.png").exists()
 
 

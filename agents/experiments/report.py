@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from agents.experiments.measures import aggregate_gain, improvement
+from agents.experiments.report_notes import write_keeping_notes
 from agents.experiments.report_why import WHY
-from estimator_service.files import atomic_write_text
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 from estimator_service.tracking import GROUPS, consistency_band
 
@@ -394,5 +394,5 @@ def write_report(out: Path, res: dict) -> Path:
 
     lines += report_lines(out) + _checks(res)
     path = out / "report.md"
-    atomic_write_text(path, "\n".join(lines))
+    write_keeping_notes(path, lines)
     return path

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator_service.files import atomic_write_text
+from agents.experiments.report_notes import write_keeping_notes
 
 __all__ = ["learning_curves", "write_report"]
 
@@ -110,4 +110,4 @@ def write_report(out: Path, data: dict[str, Any]) -> None:
         lines += ["", *agent_data_lines(json.loads(agent_data.read_text()))]
     lines += ["", "![learning curves](learning_curves.png)", "", "![returns](returns.png)", ""]
     _figures(out, data)
-    atomic_write_text(out / "report.md", "\n".join(lines))
+    write_keeping_notes(out / "report.md", lines)
