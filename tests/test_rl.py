@@ -415,6 +415,14 @@ def test_learning_curves_align_seeds_evaluated_at_different_intervals(tmp_path: 
     steps, returns = learning_curves(tmp_path, "hover", "state")
     np.testing.assert_array_equal(steps, np.arange(100_000, 1_000_001, 100_000))
     np.testing.assert_array_equal(returns, np.stack([steps / 1e3, steps / 1e3]))  # each at its own step
+    for seed, every in ((2, 4_992),):  # train-agent's default: a multiple of 16 blimps, no common step
+        folder = tmp_path / "agents" / f"hover-state-{seed}"
+        folder.mkdir(parents=True)
+        own = np.arange(every, 1_000_001, every)
+        np.savez(folder / "evaluations.npz", timesteps=own, results=np.repeat(own[:, None] / 1e3, 4, axis=1))
+    steps, returns = learning_curves(tmp_path, "hover", "state")
+    np.testing.assert_array_equal(steps, np.arange(100_000, 998_401, 100_000))  # the span all seeds cover
+    np.testing.assert_allclose(returns, np.stack([steps / 1e3] * 3))  # a linear curve, interpolated
 
 
 def test_normalize_is_read_applied_saved_and_used_when_the_agent_acts(tmp_path: Path) -> None:

@@ -17,17 +17,19 @@ COLOURS = {"state": "tab:green", "belief": "tab:blue", "belief-param": "tab:oran
 
 
 def learning_curves(out: Path, task: str, variant: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds, at
-    the steps every seed was evaluated at (seeds may have been evaluated at different
-    intervals); None without logs."""
+    """Evaluation steps ``(E,)`` and mean returns ``(S, E)`` of a (task, variant)'s seeds: the
+    steps of the seed evaluated least often, within the span every seed covers, each seed's
+    curve interpolated linearly there (seeds may have been evaluated at intervals that share
+    no step); None without logs."""
     logs = sorted((out / "agents").glob(f"{task}-{variant}-[0-9]*/evaluations.npz"))  # not belief-param
     data = [np.load(f) for f in logs]
     if not data:
         return None
-    steps = data[0]["timesteps"]
-    for d in data[1:]:
-        steps = np.intersect1d(steps, d["timesteps"])
-    rows = [d["results"][np.isin(d["timesteps"], steps)].mean(axis=1) for d in data]
+    first = max(d["timesteps"][0] for d in data)
+    last = min(d["timesteps"][-1] for d in data)
+    steps = min((d["timesteps"] for d in data), key=len)
+    steps = steps[(steps >= first) & (steps <= last)]
+    rows = [np.interp(steps, d["timesteps"], d["results"].mean(axis=1)) for d in data]
     return steps, np.stack(rows)
 
 
