@@ -52,14 +52,14 @@ def _cache_dir(home: Path, shared: Path, name: str) -> Path | None:
     removed, since only this install writes there), else ``shared/name`` in the temporary
     folder, which other installs of other versions share (nothing is removed there: each
     would delete the other's cache and recompile in every process), else None (no caching)."""
-    for folder in (home / name, shared / name):
-        if _writable(folder):
-            if folder.parent == home:
-                for old in home.glob(_PREFIX + "*"):
-                    if old != folder:
-                        shutil.rmtree(old, ignore_errors=True)  # another process may hold it: best effort
-            return folder
-    return None
+    own = home / name
+    if _writable(own):
+        for old in home.glob(_PREFIX + "*"):
+            if old != own:
+                shutil.rmtree(old, ignore_errors=True)  # another process may hold it: best effort
+        return own
+    fallback = shared / name
+    return fallback if _writable(fallback) else None
 
 
 CACHE_DIR = _cache_dir(

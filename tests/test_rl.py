@@ -406,20 +406,20 @@ def test_tensorboard_flag_logs_or_names_the_missing_package(models: str, tmp_pat
 def test_learning_curves_align_seeds_evaluated_at_different_intervals(tmp_path: Path) -> None:
     from agents.experiments.rl_report import learning_curves
 
-    for seed, every in ((0, 50_000), (1, 100_000)):
+    def evaluated(seed: int, every: int) -> None:  # a linear curve: return = step / 1000
         folder = tmp_path / "agents" / f"hover-state-{seed}"
         folder.mkdir(parents=True)
         steps = np.arange(every, 1_000_001, every)
-        results = np.repeat(steps[:, None] / 1e3, 4, axis=1)
-        np.savez(folder / "evaluations.npz", timesteps=steps, results=results)
+        np.savez(
+            folder / "evaluations.npz", timesteps=steps, results=np.repeat(steps[:, None] / 1e3, 4, axis=1)
+        )
+
+    evaluated(0, 50_000)
+    evaluated(1, 100_000)
     steps, returns = learning_curves(tmp_path, "hover", "state")
     np.testing.assert_array_equal(steps, np.arange(100_000, 1_000_001, 100_000))
     np.testing.assert_array_equal(returns, np.stack([steps / 1e3, steps / 1e3]))  # each at its own step
-    for seed, every in ((2, 4_992),):  # train-agent's default: a multiple of 16 blimps, no common step
-        folder = tmp_path / "agents" / f"hover-state-{seed}"
-        folder.mkdir(parents=True)
-        own = np.arange(every, 1_000_001, every)
-        np.savez(folder / "evaluations.npz", timesteps=own, results=np.repeat(own[:, None] / 1e3, 4, axis=1))
+    evaluated(2, 4_992)  # train-agent's default: a multiple of 16 blimps, no step in common
     steps, returns = learning_curves(tmp_path, "hover", "state")
     np.testing.assert_array_equal(steps, np.arange(100_000, 998_401, 100_000))  # the span all seeds cover
     np.testing.assert_allclose(returns, np.stack([steps / 1e3] * 3))  # a linear curve, interpolated

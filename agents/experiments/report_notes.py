@@ -14,7 +14,7 @@ __all__ = ["NOTES_MARKER", "write_keeping_notes"]
 NOTES_MARKER = "<!-- Written by hand below this line: kept when the report is regenerated. -->"
 
 
-def hand_written(path: Path) -> str:
+def _hand_written(path: Path) -> str:
     """The part of the report at ``path`` from :data:`NOTES_MARKER` on (marker included);
     empty when the file or the marker is missing."""
     if not path.exists():
@@ -26,7 +26,7 @@ def hand_written(path: Path) -> str:
 
 def write_keeping_notes(path: Path, lines: Sequence[str]) -> None:
     """Write the generated ``lines`` to ``path`` atomically, followed by the hand-written
-    notes of the report already there (see :func:`hand_written`)."""
+    notes of the report already there (from :data:`NOTES_MARKER` on)."""
     generated = "\n".join(lines).rstrip("\n") + "\n"
-    notes = hand_written(path)
+    notes = _hand_written(path)
     atomic_write_text(path, generated + ("\n" + notes if notes else ""))
