@@ -15,6 +15,7 @@ gap-sweep     where learned models start to pay: gains over Param against the re
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -158,13 +159,53 @@ def world_kwargs(args: argparse.Namespace) -> dict[str, object]:
     return out
 
 
+#: the commands that need more than the estimator: the extra to install and a module of it
+NEEDS = {
+    "collect": ("sim", "gymnasium"),
+    "train-agent": ("rl", "stable_baselines3"),
+    "eval-agent": ("rl", "stable_baselines3"),
+    "reproduce": ("sim", "gymnasium"),
+    "gap-sweep": ("sim", "gymnasium"),
+}
+
+
+def missing_extra(command: str) -> str | None:
+    """The extra ``command`` needs and this install lacks, or None."""
+    extra, module = NEEDS.get(command, (None, None))
+    if module is None:
+        return None
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except ImportError:
+        found = False
+    return None if found else extra
+
+
+def _needs_line(command: str, extra: str) -> str:
+    return f"gpbf {command}: needs the '{extra}' extra; install it with: pip install 'gpbf[{extra}]'"
+
+
 def build_parser() -> Parser:
     p = Parser(prog="gpbf", description=__doc__)
     p.add_argument("--version", action="version", version=f"gpbf {package_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     sub.add_parser("serve", help="run the estimator service (see 'gpbf serve --help')", add_help=False)
     sub.add_parser("router", help="run a zenoh router for a fleet (see 'gpbf router --help')", add_help=False)
+    add_train_track(sub)
+    builders = {
+        "collect": _add_collect, "train-agent": _add_train_agent, "eval-agent": _add_eval_agent,
+        "reproduce": _add_reproduce, "gap-sweep": _add_gap_sweep,
+    }  # fmt: skip
+    for command, add in builders.items():
+        extra = missing_extra(command)
+        if extra is None:
+            add(sub)
+        else:  # listed in --help; main() answers with the install line before parsing
+            sub.add_parser(command, help=f"(needs: pip install 'gpbf[{extra}]')", add_help=False)
+    return p
 
+
+def _add_collect(sub) -> None:
     c = sub.add_parser("collect", help="fly a pilot in the simulator and record a flight")
     c.add_argument(
         "--minutes", type=checked_float(0.1, 10_000), default=5.0, help="simulated flight time (min)"
@@ -183,8 +224,8 @@ def build_parser() -> Parser:
     add_quiet(c)
     c.set_defaults(func=_collect)
 
-    add_train_track(sub)
 
+def _add_train_agent(sub) -> None:
     a = sub.add_parser("train-agent", help="train an SB3 agent on beliefs")
     a.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
     a.add_argument(
@@ -217,6 +258,8 @@ def build_parser() -> Parser:
     add_quiet(a)
     a.set_defaults(func=_train_agent)
 
+
+def _add_eval_agent(sub) -> None:
     e = sub.add_parser("eval-agent", help="evaluate a saved agent")
     e.add_argument("agent", type=Path, help="model.zip (with agent.json beside it)")
     e.add_argument("--episodes", type=checked_int(1, 100_000), default=10, help="evaluation episodes")
@@ -227,6 +270,8 @@ def build_parser() -> Parser:
     add_quiet(e)
     e.set_defaults(func=_eval_agent)
 
+
+def _add_reproduce(sub) -> None:
     r = sub.add_parser(
         "reproduce", help="run the paper's experiments and write a report",
         description="Run the paper's experiments and write a report. Resumable: run the same command "
@@ -243,6 +288,8 @@ def build_parser() -> Parser:
     add_quiet(r)
     r.set_defaults(func=_reproduce)
 
+
+def _add_gap_sweep(sub) -> None:
     g = sub.add_parser(
         "gap-sweep", help="GP and EGP gains over Param against the reality strength",
         description="GP and EGP gains over Param against the reality strength. Resumable like reproduce.",
@@ -258,7 +305,6 @@ def build_parser() -> Parser:
     add_jobs_option(g)
     add_quiet(g)
     g.set_defaults(func=_gap_sweep)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -271,6 +317,10 @@ def main(argv: list[str] | None = None) -> int:
         from estimator_service.service.server import main as serve
 
         return serve(argv[1:])
+    extra = missing_extra(argv[0]) if argv else None
+    if extra is not None:
+        print(_needs_line(argv[0], extra), file=sys.stderr)
+        return 2
     return run(build_parser().parse_args(argv), "gpbf")
 
 

@@ -11,6 +11,9 @@ observation models, which the enhanced kinds use as their mean functions.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -31,19 +34,25 @@ from estimator_service.models.calibration import (
 from estimator_service.models.gp_models import (
     GPObservationModel,
     GPPredictionModel,
+    SharedGPObservation,
     StackedObservationModel,
 )
 from estimator_service.store import check_folder, read_system
 from estimator_service.system import System
+from estimator_service.user_models import USER_MODELS_FILE, UserSensorModel, load_user_models, user_models
 
 __all__ = [
     "FILTER_KINDS",
     "MODEL_KINDS",
+    "Parametric",
     "adaptation_defaults",
     "apply_calibration",
     "build_filter",
     "load_models",
+    "load_parametric",
     "make_filter",
+    "noise_floors",
+    "observation_files",
     "warm_up",
 ]
 
@@ -55,16 +64,71 @@ ENHANCED_KINDS = ("egp", "hetgp")
 PARAMETRIC_FILE = "parametric.npz"
 
 
-def _parametric(folder: Path, system: System) -> tuple[PredictionModel, ObservationModel]:
-    """The system's parametric models (the blimp's ODE and camera model)."""
-    if system.parametric != "blimp":
-        raise ValueError(
-            f"system {system.name!r} has no parametric model family: the 'param', 'egp' and "
-            "'hetgp' kinds need one; use 'gp' or 'sparse'"
-        )
-    from estimator_service.blimp import load_parametric
+@dataclass(frozen=True)
+class Parametric:
+    """A system's parametric models as the factory uses them: the filters' models, the
+    prediction's mean change (the enhanced kinds' prediction mean) and, per sensor, the
+    mean function of its observation GP's inputs (the state, then its type's constants)."""
 
-    return load_parametric(folder / PARAMETRIC_FILE)
+    prediction: PredictionModel
+    observation: ObservationModel
+    change: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    sensor_means: dict[str, Callable[[np.ndarray], np.ndarray]]
+    sensor_jacobians: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
+
+
+def load_parametric(folder: str | os.PathLike[str], system: System) -> Parametric:
+    """The system's parametric models: the blimp's ODE and camera model, or the user's
+    fitted models (:mod:`estimator_service.user_models`)."""
+    folder = Path(folder)
+    if not system.has_parametric:
+        raise ValueError(
+            f"system {system.name!r} has no parametric models: the 'param', 'egp' and 'hetgp' "
+            "kinds need a 'prediction_model' and a model for every sensor's type; use 'gp' or 'sparse'"
+        )
+    if system.parametric == "blimp":
+        from estimator_service.blimp import load_parametric as load_blimp
+
+        ode, cam = load_blimp(folder / PARAMETRIC_FILE)
+        means = {
+            f"cam{k}": partial(_columns_of, cam.mean, system.sensor_slice(k)) for k in range(system.n_sensors)
+        }
+        return Parametric(ode, cam, ode.change, means)
+    pred, types = user_models(load_user_models(folder / USER_MODELS_FILE, system), system)
+    n = system.state_dim
+    means = {f"type-{t}": lambda q, m=m: m.readings(q[:, :n], q[:, n:]) for t, m in types.items()}
+    jacobians = {f"type-{t}": partial(_state_jacobian, m, n) for t, m in types.items()}
+    columns = [_type_columns(system, t) for t in types]
+    stacked = StackedObservationModel(tuple(types.values()), tuple(columns))
+    return Parametric(pred, stacked, pred.change, means, jacobians)
+
+
+def _state_jacobian(model: UserSensorModel, n: int, q: np.ndarray) -> np.ndarray:
+    """``d h / d [x, c]`` ``(M, size, n + c)`` of a type's model at ``q = [x, c]``: the state
+    block (angle outputs' differences wrapped, or the user's Jacobian), zeros for the
+    constants (the filters use the state block only)."""
+    jac = model.readings_and_jacobian(q[:, :n], q[:, n:])[1]
+    return np.concatenate([jac, np.zeros((*jac.shape[:2], q.shape[1] - n))], axis=2)
+
+
+def _columns_of(f: Callable[[np.ndarray], np.ndarray], sl: slice, x: np.ndarray) -> np.ndarray:
+    return f(x)[:, sl]
+
+
+def _type_columns(system: System, type_name: str) -> np.ndarray:
+    """The observation columns of a type's sensors, sensor by sensor."""
+    ks = system.sensors_of_type()[type_name]
+    return np.concatenate([np.arange(system.sensor_slice(k).start, system.sensor_slice(k).stop) for k in ks])
+
+
+def observation_files(system: System, kind: str) -> dict[str, str]:
+    """``{part: file name}`` of a GP kind's observation models: ``cam<k>`` for each sensor
+    without a type, ``type-<name>`` for each sensor type (one GP its sensors share)."""
+    parts = {
+        f"cam{k}": f"observation_{kind}_cam{k}.npz" for k, s in enumerate(system.sensors) if s.type is None
+    }
+    parts.update({f"type-{t}": f"observation_{kind}_type-{t}.npz" for t in system.sensors_of_type()})
+    return parts
 
 
 def load_models(
@@ -85,50 +149,78 @@ def load_models(
         check_folder(folder)
     system = read_system(folder)
     n = system.state_dim
-    param = _parametric(folder, system) if kind == "param" or kind in ENHANCED_KINDS else None
-    if kind == "param":
-        pred, obs = param
+    param = load_parametric(folder, system) if kind == "param" or kind in ENHANCED_KINDS else None
+    if param is not None and kind == "param":
+        pred, obs = param.prediction, param.observation
     else:
         extra_p = {}
         if param is not None:
-            ode = param[0]
-            extra_p = {"mean_function": lambda q: ode.change(q[:, :n], q[:, n:])}
+            change = param.change
+            extra_p = {"mean_function": lambda q: change(q[:, :n], q[:, n:])}
         pred = GPPredictionModel(load_gp(folder / f"prediction_{kind}.npz", **extra_p), n)
-        obs = _observation(folder, kind, system, None if param is None else param[1])
-    return apply_calibration(folder, kind, pred, obs) if calibrated else (pred, obs)
+        obs = _observation(folder, kind, system, param)
+    return apply_calibration(folder, kind, pred, obs, system=system) if calibrated else (pred, obs)
 
 
 def apply_calibration(
     folder: str | os.PathLike[str], kind: str, pred: PredictionModel, obs: ObservationModel,
-    *, process: bool = True,
+    *, process: bool = True, system: System | None = None,
 ) -> tuple[PredictionModel, ObservationModel]:  # fmt: skip
     """``pred`` and ``obs`` with the noise scales of ``folder/calibration.json`` for ``kind``
-    (where there are any) and the process-variance ceiling (where there is one);
+    (where there are any), the process-variance ceiling (where there is one) and the
+    system's noise floors (where it declares any; ``system`` defaults to the folder's);
     ``process=False`` leaves the prediction noise as it is."""
+    system = read_system(folder) if system is None else system
     scale = read_noise_scales(folder).get(kind, 1.0) if process else 1.0
     if process and kind in (per_output := read_process_scales(folder)):
         scale = scale * per_output[kind]
     ceiling = read_process_ceiling(folder, pred.state_dim) if process else None
+    p_floor, o_floor = noise_floors(system)
+    p_floor = p_floor if process else None
     obs_scale = read_observation_scales(folder).get(kind)
-    plain = ceiling is None and np.all(np.asarray(scale) == 1.0)
-    return (
-        pred if plain else NoiseScaledPrediction(pred, scale, ceiling),
-        obs if obs_scale is None else NoiseScaledObservation(obs, obs_scale),
-    )
+    plain = ceiling is None and p_floor is None and np.all(np.asarray(scale) == 1.0)
+    if obs_scale is not None or o_floor is not None:
+        obs = NoiseScaledObservation(obs, np.ones(obs.obs_dim) if obs_scale is None else obs_scale, o_floor)
+    return (pred if plain else NoiseScaledPrediction(pred, scale, ceiling, p_floor), obs)
 
 
-def _observation(folder: Path, kind: str, system: System, cam: ObservationModel | None) -> ObservationModel:
-    """One file for all sensors, or one ``observation_<kind>_cam<k>.npz`` per sensor; ``cam``
-    (the parametric observation model) is the enhanced kinds' mean function."""
+def noise_floors(system: System) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The system's process (``(n,)``) and observation (``(m,)``) noise floors as variances,
+    None where it declares none."""
+    proc = np.square(system.process_noise_floor)
+    obs = np.square([f for s in system.sensors for f in s.noise_floor])
+    return (proc if proc.any() else None), (obs if obs.any() else None)
+
+
+def _observation(folder: Path, kind: str, system: System, param: Parametric | None) -> ObservationModel:
+    """One file for all sensors, or one file per sensor without a type and one per sensor
+    type (:func:`observation_files`); the parametric sensor means (``param``) are the
+    enhanced kinds' mean functions."""
     single = folder / f"observation_{kind}.npz"
     if single.exists():
-        return GPObservationModel(load_gp(single, **({"mean_function": cam.mean} if cam is not None else {})))
-    parts = []
-    for k in range(system.n_sensors):
-        sl = system.sensor_slice(k)
-        extra = {"mean_function": lambda x, sl=sl: cam.mean(x)[:, sl]} if cam is not None else {}
-        parts.append(GPObservationModel(load_gp(folder / f"observation_{kind}_cam{k}.npz", **extra)))
-    return StackedObservationModel(tuple(parts))
+        extra = {} if param is None else {"mean_function": lambda x: param.observation.observe(x).mean}
+        return GPObservationModel(load_gp(single, **extra))
+    parts, columns = [], []
+    types = system.sensors_of_type()
+    for part, name in observation_files(system, kind).items():
+        extra = {}
+        if param is not None:
+            extra = {
+                "mean_function": param.sensor_means[part],
+                "mean_jacobian": param.sensor_jacobians.get(part),
+            }
+        gp = load_gp(folder / name, **extra)
+        if part.startswith("type-"):
+            t = part.removeprefix("type-")
+            consts = np.array([system.sensors[k].constants for k in types[t]], dtype=np.float64)
+            parts.append(SharedGPObservation(gp, consts.reshape(len(types[t]), -1)))
+            columns.append(_type_columns(system, t))
+        else:
+            sl = system.sensor_slice(int(part.removeprefix("cam")))
+            parts.append(GPObservationModel(gp))
+            columns.append(np.arange(sl.start, sl.stop))
+    in_order = all(s.type is None for s in system.sensors)
+    return StackedObservationModel(tuple(parts), None if in_order else tuple(columns))
 
 
 # Regularised resampling with the Kalman-updated covariance of the predicted cloud. On the

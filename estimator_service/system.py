@@ -31,7 +31,16 @@ from numpy.typing import NDArray
 
 from estimator_service.filters.common import Wrapping, distinct_indices
 
-__all__ = ["Group", "Sensor", "System", "SystemError", "wrap_angle"]
+__all__ = [
+    "Group",
+    "ModelSpec",
+    "Sensor",
+    "SensorType",
+    "System",
+    "SystemError",
+    "wrap_angle",
+    "wrap_columns",
+]
 
 FloatArray = NDArray[np.float64]
 SYSTEM_FORMAT = "gpbf-system"
@@ -47,12 +56,155 @@ def wrap_angle(a: FloatArray, period: float | FloatArray = 2 * math.pi) -> Float
     return (np.asarray(a) + np.asarray(period) / 2) % period - np.asarray(period) / 2
 
 
-def _wrap_columns(e: FloatArray, periods: FloatArray) -> FloatArray:
+def wrap_columns(e: FloatArray, periods: FloatArray) -> FloatArray:
     """``e (..., n)`` with the columns of non-zero period wrapped in place; returns ``e``."""
     ang = np.flatnonzero(periods > 0)
     if ang.size:
         e[..., ang] = wrap_angle(e[..., ang], periods[ang])
     return e
+
+
+def _is_name(text: object) -> bool:
+    """Letters, digits, ``_`` and ``-`` (a sensor's, type's or parameter's name)."""
+    return (
+        isinstance(text, str) and bool(text) and all(c.isascii() and (c.isalnum() or c in "_-") for c in text)
+    )
+
+
+def _floats(values: object, n: int, field_name: str, where: str) -> tuple[float, ...]:
+    """``n`` finite numbers >= 0 (empty: ``n`` zeros), or a SystemError naming the field."""
+    try:
+        vals = tuple(float(v) for v in values) or (0.0,) * n  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        vals = ()
+    if len(vals) != n or not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise SystemError(f"{where}: '{field_name}' needs {n} finite numbers >= 0, got {values!r}")
+    return vals
+
+
+def _named_values(values: object, field_name: str, where: str) -> tuple[tuple[str, float], ...]:
+    """A JSON object ``{name: number}`` as sorted pairs; a SystemError names the field."""
+    if isinstance(values, Mapping):
+        values = tuple(values.items())
+    try:
+        pairs = tuple((str(k), float(v)) for k, v in values)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise SystemError(f"{where}: '{field_name}' must map names to numbers, got {values!r}") from None
+    bad = [k for k, v in pairs if not _is_name(k) or not math.isfinite(v)]
+    if bad or len({k for k, _ in pairs}) != len(pairs):
+        raise SystemError(f"{where}: '{field_name}' needs distinct names and finite numbers (bad: {bad})")
+    return tuple(sorted(pairs))
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A parametric model the user brings: a Python callable named by import path.
+
+    The system description names the code; :mod:`estimator_service.user_models` loads it,
+    fits ``params`` to the training log and evaluates it. Naming code in a description
+    means loading that description runs the code: load only descriptions you trust.
+
+    Attributes
+    ----------
+    function
+        ``"package.module:attribute"`` or the name of an entry point in the group
+        ``gpbf.models``. A prediction model is called ``f(x, u, p, dt)`` with states
+        ``x (M, n)``, controls ``u (M, k)``, parameters ``p`` (a mapping name -> float) and
+        the step ``dt``, and returns the next states ``(M, n)``; a sensor model is called
+        ``h(x, c, p)`` with the sensors' constants ``c`` (a mapping name -> ``(M,)``) and
+        returns the readings ``(M, size)``.
+    params
+        ``(name, initial value)`` pairs, fitted by least squares on the training log.
+    fixed
+        ``(name, value)`` pairs passed to the function and never fitted.
+    jacobian
+        Optional callable of the same arguments returning ``d f / d x`` ``(M, n, n)`` (or
+        ``d h / d x`` ``(M, size, n)``); central differences otherwise.
+    """
+
+    function: str
+    params: tuple[tuple[str, float], ...] = ()
+    fixed: tuple[tuple[str, float], ...] = ()
+    jacobian: str | None = None
+
+    def __post_init__(self) -> None:
+        where = f"model {self.function!r}"
+        for ref in (self.function, self.jacobian):
+            if ref is not None and not _is_reference(ref):
+                raise SystemError(
+                    f"{where}: {ref!r} is not 'package.module:attribute' or an entry-point name"
+                )
+        object.__setattr__(self, "params", _named_values(self.params, "params", where))
+        object.__setattr__(self, "fixed", _named_values(self.fixed, "fixed", where))
+        clash = {k for k, _ in self.params} & {k for k, _ in self.fixed}
+        if clash:
+            raise SystemError(f"{where}: {sorted(clash)} both in 'params' and in 'fixed'")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "function": self.function, "params": dict(self.params), "fixed": dict(self.fixed),
+            "jacobian": self.jacobian,
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: object, where: str) -> ModelSpec:
+        if not isinstance(d, Mapping) or "function" not in d:
+            raise SystemError(f"{where}: a model needs a JSON object with 'function'")
+        unknown = set(d) - {"function", "params", "fixed", "jacobian"}
+        if unknown:
+            raise SystemError(f"{where}: unknown model field(s) {sorted(unknown)}")
+        return cls(str(d["function"]), d.get("params") or (), d.get("fixed") or (), d.get("jacobian"))
+
+
+def _is_reference(ref: object) -> bool:
+    """``module.path:attr.path`` or an entry-point name."""
+    if not isinstance(ref, str):
+        return False
+    module, _, attr = ref.partition(":")
+    parts = module.split(".") + (attr.split(".") if attr else [])
+    return all(p.isidentifier() for p in parts) and (bool(attr) or ":" not in ref)
+
+
+@dataclass(frozen=True)
+class SensorType:
+    """Sensors that share one model: the landmarks of a range-bearing camera, the cameras of
+    one make. Each sensor of the type gives values for the type's ``constants`` (a
+    landmark's surveyed position, a camera's pose); the type's model (a parametric
+    ``model``, and the GP kinds' one GP) takes them as inputs beside the state, so every
+    sensor's readings train it.
+
+    Attributes
+    ----------
+    name
+        Unique among the system's types.
+    constants
+        Names of the per-sensor constants (may be empty).
+    model
+        The parametric sensor model, or None (the GP kinds still share one GP).
+    """
+
+    name: str
+    constants: tuple[str, ...] = ()
+    model: ModelSpec | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "constants", tuple(str(c) for c in self.constants))
+        if not _is_name(self.name):
+            raise SystemError(f"sensor type name {self.name!r}: use letters, digits, '_' and '-'")
+        if not all(map(_is_name, self.constants)) or len(set(self.constants)) != len(self.constants):
+            raise SystemError(f"sensor type {self.name!r}: 'constants' must be distinct names")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> SensorType:
+        model, where = d.get("model"), f"sensor type {d['name']!r}"
+        spec = None if model is None else ModelSpec.from_dict(model, where)
+        return cls(d["name"], tuple(d.get("constants") or ()), spec)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name, "constants": list(self.constants),
+            "model": None if self.model is None else self.model.to_dict(),
+        }  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -70,29 +222,59 @@ class Sensor:
         or 0; empty means no angles.
     rate_hz
         Nominal frame rate (informational; frames arrive whenever they arrive).
+    type
+        The :class:`SensorType` whose model this sensor shares, or None (a model of its own).
+    constants
+        The values of the type's constants for this sensor, in the type's order.
+    noise_floor
+        Per output, the least noise standard deviation any model may claim (the sensor's
+        datasheet or a measurement; output units); empty: no floor.
     """
 
     name: str
     outputs: tuple[str, ...]
     periods: tuple[float, ...] = ()
     rate_hz: float | None = None
+    type: str | None = None
+    constants: tuple[float, ...] = ()
+    noise_floor: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "outputs", tuple(str(o) for o in self.outputs))
-        periods = tuple(float(p) for p in self.periods) or (0.0,) * len(self.outputs)
-        object.__setattr__(self, "periods", periods)
-        if not self.name or not all(c.isascii() and (c.isalnum() or c in "_-") for c in self.name):
+        if not _is_name(self.name):
             raise SystemError(f"sensor name {self.name!r}: use letters, digits, '_' and '-'")
+        where = f"sensor {self.name!r}"
         if not self.outputs:
-            raise SystemError(f"sensor {self.name!r}: 'outputs' is empty")
-        if len(periods) != len(self.outputs) or any(not (p >= 0 and math.isfinite(p)) for p in periods):
-            raise SystemError(f"sensor {self.name!r}: 'periods' needs one finite value >= 0 per output")
+            raise SystemError(f"{where}: 'outputs' is empty")
+        object.__setattr__(self, "periods", _floats(self.periods, self.size, "periods", where))
+        object.__setattr__(self, "noise_floor", _floats(self.noise_floor, self.size, "noise_floor", where))
+        try:
+            constants = tuple(float(c) for c in self.constants)
+        except (TypeError, ValueError):
+            constants = (math.nan,)
+        if not all(math.isfinite(c) for c in constants):
+            raise SystemError(f"{where}: 'constants' must be finite numbers, got {self.constants!r}")
+        object.__setattr__(self, "constants", constants)
         if self.rate_hz is not None and not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
-            raise SystemError(f"sensor {self.name!r}: 'rate_hz' must be > 0, got {self.rate_hz}")
+            raise SystemError(f"{where}: 'rate_hz' must be > 0, got {self.rate_hz}")
 
     @property
     def size(self) -> int:
         return len(self.outputs)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Sensor:
+        return cls(
+            d["name"], tuple(d["outputs"]), tuple(d.get("periods") or ()), d.get("rate_hz"), d.get("type"),
+            tuple(d.get("constants") or ()), tuple(d.get("noise_floor") or ()),
+        )  # fmt: skip
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name, "outputs": list(self.outputs), "periods": list(self.periods),
+            "rate_hz": self.rate_hz, "type": self.type, "constants": list(self.constants),
+            "noise_floor": list(self.noise_floor),
+        }  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -136,6 +318,17 @@ class System:
         the adaptive EKF and UKF inflate only their process noise
         (:mod:`estimator_service.filters.adaptive`); None: every component. A filter
         setting, not a data layout: two systems that differ only here are equal.
+    prediction_model
+        The user's parametric prediction model (:class:`ModelSpec`), or None.
+    sensor_types
+        Types whose model several sensors share (:class:`SensorType`).
+    process_noise_floor
+        Per state component, the least process-noise standard deviation per step any
+        prediction model may claim; empty: no floor.
+
+    With ``prediction_model`` and a parametric model for every sensor's type the system has
+    the ``param``, ``egp`` and ``hetgp`` kinds, as the blimp has with ``parametric="blimp"``
+    (:attr:`has_parametric`).
     """
 
     name: str
@@ -150,6 +343,9 @@ class System:
     prior_std: tuple[float, ...] = ()
     parametric: str | None = None
     disturbed: tuple[int, ...] | None = field(default=None, compare=False)
+    prediction_model: ModelSpec | None = None
+    sensor_types: tuple[SensorType, ...] = ()
+    process_noise_floor: tuple[float, ...] = ()
     _slices: tuple[slice, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -173,7 +369,11 @@ class System:
         fix("groups", tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
         fix("prior_mean", tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
         fix("prior_std", tuple(float(v) for v in self.prior_std) or (1.0,) * n)
+        fix("sensor_types", tuple(self.sensor_types))
+        where = f"system {self.name!r}"
+        fix("process_noise_floor", _floats(self.process_noise_floor, n, "process_noise_floor", where))
         self._check()
+        self._check_types()
         starts = np.cumsum([0, *(s.size for s in self.sensors)])
         fix("_slices", tuple(slice(int(a), int(b)) for a, b in itertools.pairwise(starts)))
 
@@ -196,6 +396,59 @@ class System:
         for g in self.groups:
             if not g.indices or any(not 0 <= i < n for i in g.indices):
                 raise SystemError(f"{where}: group {g.name!r} indexes outside the state")
+
+    def _check_types(self) -> None:
+        where = f"system {self.name!r}"
+        types = {t.name: t for t in self.sensor_types}
+        if len(types) != len(self.sensor_types):
+            raise SystemError(f"{where}: sensor type names must be unique")
+        if self.parametric is not None and (self.prediction_model or any(t.model for t in types.values())):
+            raise SystemError(
+                f"{where}: 'parametric' ({self.parametric!r}) and your own models exclude each other"
+            )
+        layouts: dict[str, tuple] = {}
+        for s in self.sensors:
+            if s.type is None:
+                if s.constants:
+                    raise SystemError(f"{where}: sensor {s.name!r} has 'constants' but no 'type'")
+                continue
+            t = types.get(s.type)
+            if t is None:
+                raise SystemError(
+                    f"{where}: sensor {s.name!r}: unknown type {s.type!r}; declare it in 'sensor_types'"
+                )
+            if len(s.constants) != len(t.constants):
+                raise SystemError(
+                    f"{where}: sensor {s.name!r} needs {len(t.constants)} 'constants' {list(t.constants)} "
+                    f"of type {t.name!r}, got {len(s.constants)}"
+                )
+            if layouts.setdefault(t.name, (s.outputs, s.periods)) != (s.outputs, s.periods):
+                raise SystemError(
+                    f"{where}: sensors of type {t.name!r} must have the same outputs and periods"
+                )
+
+    # -- parametric models and sensor types ----------------------------------------------------------
+    @property
+    def has_parametric(self) -> bool:
+        """Whether the ``param``, ``egp`` and ``hetgp`` kinds can be trained: the blimp's
+        family, or the user's prediction model and a model for every sensor's type."""
+        if self.parametric is not None:
+            return True
+        types = {t.name: t for t in self.sensor_types}
+        return self.prediction_model is not None and all(
+            s.type is not None and types[s.type].model is not None for s in self.sensors
+        )
+
+    def sensors_of_type(self) -> dict[str, tuple[int, ...]]:
+        """``{type name: indices of its sensors}`` for every type some sensor has."""
+        out: dict[str, list[int]] = {}
+        for k, s in enumerate(self.sensors):
+            if s.type is not None:
+                out.setdefault(s.type, []).append(k)
+        return {t: tuple(ks) for t, ks in out.items()}
+
+    def sensor_type(self, name: str) -> SensorType:
+        return next(t for t in self.sensor_types if t.name == name)
 
     # -- sizes and layout ---------------------------------------------------------------------------
     @property
@@ -243,12 +496,12 @@ class System:
     def state_error(self, estimate: FloatArray, truth: FloatArray) -> FloatArray:
         """``estimate - truth`` ``(..., n)`` with angle errors wrapped to ``[-p/2, p/2)``."""
         e = np.array(np.asarray(estimate) - np.asarray(truth), dtype=np.float64)
-        return _wrap_columns(e, np.asarray(self.state_periods))
+        return wrap_columns(e, np.asarray(self.state_periods))
 
     def obs_error(self, z: FloatArray, mean: FloatArray) -> FloatArray:
         """``z - mean`` ``(..., m)`` with angle outputs wrapped to ``[-p/2, p/2)``."""
         e = np.array(np.asarray(z) - np.asarray(mean), dtype=np.float64)
-        return _wrap_columns(e, self.obs_periods)
+        return wrap_columns(e, self.obs_periods)
 
     def wrapping(self) -> Wrapping:
         """The filters' view of the angles (state and observation periods)."""
@@ -262,10 +515,7 @@ class System:
             "name": self.name,
             "state": list(self.state),
             "controls": list(self.controls),
-            "sensors": [
-                {"name": s.name, "outputs": list(s.outputs), "periods": list(s.periods), "rate_hz": s.rate_hz}
-                for s in self.sensors
-            ],
+            "sensors": [s.to_dict() for s in self.sensors],
             "dt": self.dt,
             "state_periods": list(self.state_periods),
             "circle_inputs": list(self.circle_inputs or ()),
@@ -274,6 +524,9 @@ class System:
             "prior_std": list(self.prior_std),
             "parametric": self.parametric,
             "disturbed": None if self.disturbed is None else list(self.disturbed),
+            "prediction_model": None if self.prediction_model is None else self.prediction_model.to_dict(),
+            "sensor_types": [t.to_dict() for t in self.sensor_types],
+            "process_noise_floor": list(self.process_noise_floor),
         }
 
     def to_json(self) -> str:
@@ -293,10 +546,10 @@ class System:
         if missing:
             raise SystemError(f"{where}: missing field(s) {missing}")
         try:
-            sensors = tuple(
-                Sensor(s["name"], tuple(s["outputs"]), tuple(s.get("periods") or ()), s.get("rate_hz"))
-                for s in d["sensors"]
-            )
+            sensors = tuple(Sensor.from_dict(s) for s in d["sensors"])
+            types = tuple(SensorType.from_dict(t) for t in d.get("sensor_types") or ())
+            pm = d.get("prediction_model")
+            prediction = None if pm is None else ModelSpec.from_dict(pm, "'prediction_model'")
             groups = tuple(
                 Group(g["name"], tuple(int(i) for i in g["indices"]), float(g.get("factor", 1.0)))
                 for g in d.get("groups") or ()
@@ -306,7 +559,7 @@ class System:
                 str(d["name"]), tuple(d["state"]), tuple(d["controls"]), sensors, float(d["dt"]),
                 tuple(d.get("state_periods") or ()), None if circle is None else tuple(circle), groups,
                 tuple(d.get("prior_mean") or ()), tuple(d.get("prior_std") or ()), d.get("parametric"),
-                disturbed,
+                disturbed, prediction, types, tuple(d.get("process_noise_floor") or ()),
             )  # fmt: skip
         except SystemError as exc:
             raise SystemError(f"{where}: {exc}") from None

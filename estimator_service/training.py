@@ -15,6 +15,7 @@ The folder is written through :mod:`estimator_service.store`: whole or not at al
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -24,7 +25,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.crossfit import calibration_folds, cross_fit
-from estimator_service.factory import ENHANCED_KINDS, MODEL_KINDS, PARAMETRIC_FILE
+from estimator_service.factory import (
+    ENHANCED_KINDS,
+    MODEL_KINDS,
+    PARAMETRIC_FILE,
+    Parametric,
+    load_parametric,
+    observation_files,
+)
+from estimator_service.files import atomic_write_text
 from estimator_service.flight import Flight
 from estimator_service.gp import (
     CircularGP,
@@ -40,9 +49,18 @@ from estimator_service.gp import (
 )
 from estimator_service.models.calibration import write_process_ceiling
 from estimator_service.store import writing
-from estimator_service.system import System
+from estimator_service.system import Sensor, System, wrap_columns
+from estimator_service.user_models import (
+    USER_MODELS_FILE,
+    fit_user_models,
+    load_user_models,
+    save_user_models,
+)
 
-__all__ = ["TrainSettings", "available_kinds", "prediction_data", "train_models"]
+#: per kind and model part, each output's claimed noise std beside its floor (see _claimed_std)
+NOISE_FILE = "noise.json"
+
+__all__ = ["NOISE_FILE", "TrainSettings", "available_kinds", "prediction_data", "train_models"]
 
 FloatArray = NDArray[np.float64]
 
@@ -120,7 +138,7 @@ def observation_data(flights: Sequence[Flight], sensor: int) -> tuple[FloatArray
 def available_kinds(system: System) -> tuple[str, ...]:
     """The model kinds a system can train: all five with a parametric model family, else
     ``gp`` and ``sparse``."""
-    if system.parametric is not None:
+    if system.has_parametric:
         return MODEL_KINDS
     return tuple(k for k in MODEL_KINDS if k != "param" and k not in ENHANCED_KINDS)
 
@@ -216,26 +234,23 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
     timings: dict[str, float] = {}
     n = system.state_dim
     param = None
-    if system.parametric is not None and any(k == "param" or k in ENHANCED_KINDS for k in kinds):
-        from estimator_service.blimp import fit_parametric, save_parametric
-
+    if system.has_parametric and any(k == "param" or k in ENHANCED_KINDS for k in kinds):
         t0 = time.perf_counter()
-        inp_f, change_f = prediction_data(flights)
-        x = inp_f[:, :n]
-        param = fit_parametric(flights, x, inp_f[:, n:], x + change_f)
-        save_parametric(*param, out / PARAMETRIC_FILE)
+        param = _fit_parametric(out, flights, system)
         timings["param"] = time.perf_counter() - t0
     inp, change = prediction_data(flights)
     if exclude is not None:
         keep = ~exclude(inp)
         inp, change = inp[keep], change[keep]
     rows = _subsample(len(inp), settings.n_points, rng)
-    obs_sets = []
-    for k in range(system.n_sensors):
-        xs, zs = observation_data(flights, k)
+    obs_sets = {}
+    for part, (xs, zs) in observation_sets(flights, system).items():
         sel = _subsample(len(xs), settings.n_points, rng)
-        obs_sets.append((xs[sel], zs[sel]))
+        obs_sets[part] = (xs[sel], zs[sel])
     angles = tuple(system.circle_inputs or ())
+    noise: dict[str, dict] = {}
+    if param is not None:
+        noise["param"] = _parametric_std(out, system)
     for kind in (k for k in kinds if k != "param"):
         t0 = time.perf_counter()
 
@@ -254,23 +269,97 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         x, y = inp[rows], change[rows]
         name = f"prediction_{kind}.npz"
         if kind in ENHANCED_KINDS:
-            mean = param[0].change
+            mean = param.change
             pred = fit_enhanced(x, y, lambda q, mean=mean: mean(q[:, :n], q[:, n:]), fit, base=base_for(name))
         else:
             pred = fit(x, y, base_for(name))
         save_gp(pred, out / name)
-        for k, (xs, zs) in enumerate(obs_sets):
-            name = f"observation_{kind}_cam{k}.npz"
+        claimed = {"prediction": _claimed_std(pred, x, system.state, system.process_noise_floor)}
+        for part, name in observation_files(system, kind).items():
+            xs, zs = obs_sets[part]
+            periods = np.asarray(_part_sensor(system, part).periods)
             if kind in ENHANCED_KINDS:
-                sl = system.sensor_slice(k)
-                obs = fit_enhanced(xs, zs, lambda q, sl=sl: param[1].mean(q)[:, sl], fit, base=base_for(name))
+                mean = param.sensor_means[part]
+                # the residual of an angle output on its circle: z - f(x) wrapped
+                zs = mean(xs) + wrap_columns(zs - mean(xs), periods)
+                obs = fit_enhanced(xs, zs, mean, fit, base=base_for(name))
             else:
-                obs = _fit_sensor(xs, zs, base_for(name), angles, system.sensors[k].periods)
+                obs = _fit_sensor(xs, zs, base_for(name), angles, tuple(periods))
             save_gp(obs, out / name)
+            sensor = _part_sensor(system, part)
+            claimed[part] = _claimed_std(obs, xs, sensor.outputs, sensor.noise_floor)
+        noise[kind] = claimed
         timings[kind] = time.perf_counter() - t0
         if on_progress:
             on_progress(kind, None)
+    atomic_write_text(out / NOISE_FILE, json.dumps(noise, indent=1))
     return timings
+
+
+def _claimed_std(model, x: FloatArray, names: Sequence[str], floor: Sequence[float]) -> dict[str, dict]:
+    """``{output: {"std": median predictive std at the training inputs, "floor": floor}}``:
+    the noise a model claims beside the least the description allows (applied when filtering)."""
+    return _named_std(np.median(np.sqrt(model.predict(x, return_var=True).var), axis=0), names, floor)
+
+
+def _named_std(std: FloatArray, names: Sequence[str], floor: Sequence[float]) -> dict[str, dict]:
+    return {n: {"std": float(s), "floor": float(f)} for n, s, f in zip(names, std, floor, strict=True)}
+
+
+def _parametric_std(out: Path, system: System) -> dict[str, dict]:
+    """The user's fitted parametric models' noise std (their residuals', at least the floor)
+    as :func:`_claimed_std` reports it; empty for the blimp's models."""
+    if system.parametric is not None:
+        return {}
+    fitted = load_user_models(out / USER_MODELS_FILE, system)
+    parts = {"prediction": (fitted.prediction.noise_var, system.state, system.process_noise_floor)}
+    for t, m in fitted.sensor_types.items():
+        sensor = _part_sensor(system, f"type-{t}")
+        parts[f"type-{t}"] = (m.noise_var, sensor.outputs, sensor.noise_floor)
+    return {part: _named_std(np.sqrt(var), names, floor) for part, (var, names, floor) in parts.items()}
+
+
+def _part_sensor(system: System, part: str) -> Sensor:
+    """The sensor (or a sensor of the type) an observation part models."""
+    if part.startswith("type-"):
+        return system.sensors[system.sensors_of_type()[part.removeprefix("type-")][0]]
+    return system.sensors[int(part.removeprefix("cam"))]
+
+
+def observation_sets(flights: Sequence[Flight], system: System) -> dict[str, tuple[FloatArray, FloatArray]]:
+    """Training inputs and readings of every observation part
+    (:func:`~estimator_service.factory.observation_files`): a sensor without a type, its
+    states ``(T, n)`` and readings; a sensor type, the states of all its sensors' readings
+    with each sensor's constants appended ``(T, n + c)`` and the readings, sensor by sensor."""
+    sets = {f"cam{k}": observation_data(flights, k) for k, s in enumerate(system.sensors) if s.type is None}
+    for t, ks in system.sensors_of_type().items():
+        xs, zs = [], []
+        for k in ks:
+            x, z = observation_data(flights, k)
+            xs.append(np.concatenate([x, np.tile(system.sensors[k].constants, (len(x), 1))], axis=1))
+            zs.append(z)
+        sets[f"type-{t}"] = (np.concatenate(xs), np.concatenate(zs))
+    return sets
+
+
+def _fit_parametric(out: Path, flights: Sequence[Flight], system: System) -> Parametric:
+    """Fit the system's parametric models to all ``flights``, save them into ``out`` and
+    return them as the factory loads them (the blimp's ODE and camera model, or the user's
+    models of :mod:`estimator_service.user_models`)."""
+    n = system.state_dim
+    inp, change = prediction_data(flights)
+    x, u = inp[:, :n], inp[:, n:]
+    if system.parametric == "blimp":
+        from estimator_service.blimp import fit_parametric, save_parametric
+
+        save_parametric(*fit_parametric(flights, x, u, x + change), out / PARAMETRIC_FILE)
+    else:
+        readings = {
+            t: (xs[:, :n], xs[:, n:], zs) for t, (xs, zs) in observation_sets(flights, system).items()
+        }
+        readings = {t.removeprefix("type-"): v for t, v in readings.items()}
+        save_user_models(fit_user_models(system, (x, u, x + change), readings), out / USER_MODELS_FILE)
+    return load_parametric(out, system)
 
 
 def _conditioner(path: Path) -> Callable[[FloatArray, FloatArray], object]:

@@ -95,9 +95,13 @@ def test_no_import_cycles() -> None:
     assert not real, "import cycles:\n" + "\n".join(" -> ".join(c) for c in real)
 
 
-BLOCKER = """
+def blocker(blocked: tuple[str, ...]) -> str:
+    """A script prologue under which importing any of ``blocked`` (top-level names) fails."""
+    return f"BLOCKED = {blocked!r}" + BLOCK_IMPORTS
+
+
+BLOCK_IMPORTS = """
 import importlib.abc, sys
-BLOCKED = ("gymnasium", "torch", "stable_baselines3", "gpbf_env", "agents", "matplotlib")
 class Block(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         if name.split(".")[0] in BLOCKED:
@@ -105,6 +109,9 @@ class Block(importlib.abc.MetaPathFinder):
         return None
 sys.meta_path.insert(0, Block())
 """
+BLOCKER = blocker(("gymnasium", "torch", "stable_baselines3", "gpbf_env", "agents", "matplotlib"))
+#: an install of ``gpbf`` without extras: agents is there, the simulator and RL stacks not
+NO_EXTRAS = blocker(("gymnasium", "torch", "stable_baselines3", "gpbf_env", "numba", "matplotlib"))
 
 
 def test_estimator_runs_on_a_log_without_gymnasium_or_torch(tmp_path: Path) -> None:
@@ -149,3 +156,37 @@ def test_estimator_modules_import_alone(mod: str) -> None:
     script = BLOCKER + f"import {mod}; print('ok')"
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 0, out.stderr
+
+
+def test_gpbf_runs_the_estimators_commands_without_the_simulator(tmp_path: Path) -> None:
+    """``gpbf`` in an install without the ``sim`` and ``rl`` extras: the estimator's commands
+    and ``--help``/``--version`` work; the simulator's and agents' commands answer with the
+    extra to install, one line, exit code 2."""
+    from tests.robot_log import write_robot_log
+
+    log, system = write_robot_log(tmp_path, np.random.default_rng(0))
+    script = (
+        NO_EXTRAS
+        + f"""
+import contextlib, io
+from agents.cli import main
+for argv in (["--version"], ["--help"], ["train", "--help"], ["track", "--help"], ["serve", "--help"]):
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit) as done:
+        main(argv)
+assert main(["train", {str(log)!r}, "--system", {str(system)!r}, "--out", {str(tmp_path / "m")!r},
+             "--points", "40", "--calibration-seconds", "0", "--kinds", "gp", "--quiet"]) == 0
+for command, extra in (("collect", "sim"), ("train-agent", "rl"), ("reproduce", "sim")):
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main([command, "--out", "x"]) == 2
+    line = f"gpbf {{command}}: needs the '{{extra}}' extra; install it with: pip install 'gpbf[{{extra}}]'"
+    assert err.getvalue() == line + "\\n", err.getvalue()
+heavy = sorted(m for m in sys.modules if m.split(".")[0] in ("gymnasium", "torch", "gpbf_env"))
+assert not heavy, heavy
+print("ok")
+"""
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stdout + out.stderr

@@ -15,7 +15,14 @@ PAGE = ROOT / "docs" / "your-robot.md"
 
 
 def test_the_walk_through_runs_as_written(tmp_path: Path) -> None:
-    assert [lang for lang, _, name in blocks(PAGE) if not name] == ["python", "sh", "sh", "python", "sh"]
+    assert [lang for lang, _, name in blocks(PAGE) if not name] == [
+        "python",
+        "sh",
+        "sh",
+        "python",
+        "sh",
+        "sh",
+    ]
     try:
         run_blocks(PAGE, tmp_path, {"7450": str(free_port())})
     finally:
@@ -26,6 +33,7 @@ def test_the_walk_through_runs_as_written(tmp_path: Path) -> None:
             except ProcessLookupError:
                 pass
     assert (tmp_path / "rover_models" / "manifest.json").exists()
+    assert (tmp_path / "rover_own" / "parametric.json").exists()
     assert "ready" in (tmp_path / "serve.log").read_text()
 
 

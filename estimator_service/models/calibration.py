@@ -76,14 +76,16 @@ CEILING_FACTOR = 10.0  # the ceiling in units of each state output's variance in
 
 @dataclass(frozen=True)
 class NoiseScaledPrediction:
-    """``inner`` with its noise variance multiplied by ``scale`` and capped per output at
-    ``ceiling (n,)`` when given (mean and Jacobian as is)."""
+    """``inner`` with its noise variance multiplied by ``scale``, capped per output at
+    ``ceiling (n,)`` when given and raised to ``floor (n,)`` (variances: the system's
+    process-noise floor) when given (mean and Jacobian as is)."""
 
     __repr__ = short_repr
 
     inner: PredictionModel
     scale: float | FloatArray
     ceiling: FloatArray | None = None
+    floor: FloatArray | None = None
 
     def __post_init__(self) -> None:
         s, n = np.asarray(self.scale, dtype=np.float64), self.inner.state_dim
@@ -107,7 +109,12 @@ class NoiseScaledPrediction:
         var_out = out.var * self.scale
         if self.ceiling is not None:
             var_out = np.minimum(var_out, self.ceiling)
-        return ModelOutput(out.mean, var_out, out.jac)
+        return ModelOutput(out.mean, _floored(var_out, self.floor), out.jac)
+
+
+def _floored(var: FloatArray, floor: FloatArray | None) -> FloatArray:
+    """``max(var, floor)`` per output (``var`` as is without a floor)."""
+    return var if floor is None else np.maximum(var, floor)
 
 
 def _ceiling(value: object, n: int) -> FloatArray:
@@ -125,12 +132,14 @@ def _ceiling(value: object, n: int) -> FloatArray:
 
 @dataclass(frozen=True)
 class NoiseScaledObservation:
-    """``inner`` with its noise variance multiplied per output by ``scale (m,)``."""
+    """``inner`` with its noise variance multiplied per output by ``scale (m,)`` and raised
+    to ``floor (m,)`` (variances: the sensors' noise floors) when given."""
 
     __repr__ = short_repr
 
     inner: ObservationModel
     scale: FloatArray
+    floor: FloatArray | None = None
 
     def __post_init__(self) -> None:
         s = np.asarray(self.scale, dtype=np.float64)
@@ -151,7 +160,7 @@ class NoiseScaledObservation:
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         """``inner.observe`` with ``var * scale``: mean ``(M, m)``, var ``(M, m)``, jac ``(M, m, n)``."""
         out = self.inner.observe(x, jac=jac, var=var)
-        return ModelOutput(out.mean, out.var * self.scale, out.jac)
+        return ModelOutput(out.mean, _floored(out.var * self.scale, self.floor), out.jac)
 
 
 def _read(folder: str | os.PathLike[str]) -> dict:

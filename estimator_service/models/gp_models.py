@@ -11,7 +11,7 @@ from estimator_service.gp.base import GPModel
 from estimator_service.models.base import ModelOutput, controls_for
 from estimator_service.reprs import short_repr
 
-__all__ = ["GPObservationModel", "GPPredictionModel", "StackedObservationModel"]
+__all__ = ["GPObservationModel", "GPPredictionModel", "SharedGPObservation", "StackedObservationModel"]
 
 FloatArray = NDArray[np.float64]
 
@@ -57,28 +57,82 @@ class GPObservationModel:
         return ModelOutput(p.mean, p.var if p.var is not None else np.zeros_like(p.mean), p.jac)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
+class SharedGPObservation:
+    """One GP on ``[x, c] -> z`` shared by ``S`` sensors of a type, each with its constants
+    ``c``: outputs side by side, sensor by sensor (``obs_dim = S * size``); the Jacobian is
+    the state block of the GP's.
+
+    Attributes
+    ----------
+    gp
+        Fitted on ``[x, c]`` rows of every sensor of the type.
+    constants: (S, c)
+        Each sensor's constants.
+    """
+
+    __repr__ = short_repr
+
+    gp: GPModel
+    constants: FloatArray
+    state_dim: int = field(init=False)
+    obs_dim: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        s, c = self.constants.shape
+        object.__setattr__(self, "state_dim", self.gp.input_dim - c)
+        object.__setattr__(self, "obs_dim", s * self.gp.output_dim)
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        m, (s, _) = len(x), self.constants.shape
+        q = np.concatenate([np.tile(x, (s, 1)), np.repeat(self.constants, m, axis=0)], axis=1)
+        p = self.gp.predict(q, return_var=var, return_jac=jac)
+
+        def side_by_side(a: FloatArray) -> FloatArray:  # (S * M, size, ...) -> (M, S * size, ...)
+            a = a.reshape(s, m, *a.shape[1:])
+            return np.moveaxis(a, 0, 1).reshape(m, self.obs_dim, *a.shape[3:])
+
+        v = p.var if p.var is not None else np.zeros_like(p.mean)
+        j = None if p.jac is None else side_by_side(p.jac[:, :, : self.state_dim])
+        return ModelOutput(side_by_side(p.mean), side_by_side(v), j)
+
+
+@dataclass(frozen=True, eq=False)
 class StackedObservationModel:
-    """Several observation models (e.g. one per camera) side by side: outputs concatenated."""
+    """Several observation models (e.g. one per camera, or one per sensor type) side by side:
+    part ``i``'s outputs go to ``columns[i]`` of the observation (default: one after another)."""
 
     __repr__ = short_repr
 
     parts: tuple
+    columns: tuple[NDArray[np.intp], ...] | None = None
     state_dim: int = field(init=False)
     obs_dim: int = field(init=False)
+    _order: NDArray[np.intp] | None = field(init=False, repr=False, default=None)
 
     def __post_init__(self) -> None:
         dims = {p.state_dim for p in self.parts}
         if len(dims) != 1:
             raise ValueError(f"stacked observation models disagree on the state size: {dims}")
         object.__setattr__(self, "state_dim", dims.pop())
-        object.__setattr__(self, "obs_dim", sum(p.obs_dim for p in self.parts))
+        m = sum(p.obs_dim for p in self.parts)
+        object.__setattr__(self, "obs_dim", m)
+        if self.columns is not None:
+            cols = np.concatenate([np.asarray(c, dtype=np.intp) for c in self.columns])
+            sizes = [len(c) for c in self.columns]
+            if sizes != [p.obs_dim for p in self.parts] or not np.array_equal(np.sort(cols), np.arange(m)):
+                raise ValueError("stacked observation models' columns must cover the observation once")
+            object.__setattr__(self, "_order", np.argsort(cols))  # part-major -> observation order
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
-        outs = [p.observe(x, jac=jac, var=var) for p in self.parts]  # a few cameras
-        j = np.concatenate([o.jac for o in outs], axis=1) if jac else None
-        return ModelOutput(
+        outs = [p.observe(x, jac=jac, var=var) for p in self.parts]  # a few cameras or types
+        out = ModelOutput(
             np.concatenate([o.mean for o in outs], axis=1),
-            np.concatenate([o.var for o in outs], axis=1),
-            j,
+            np.concatenate([np.broadcast_to(o.var, o.mean.shape) for o in outs], axis=1),
+            np.concatenate([o.jac for o in outs], axis=1) if jac else None,
+        )
+        if (order := self._order) is None:
+            return out
+        return ModelOutput(
+            out.mean[:, order], out.var[:, order], None if out.jac is None else out.jac[:, order]
         )

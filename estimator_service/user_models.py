@@ -1,0 +1,445 @@
+"""Parametric models a user brings: Python callables named in the system description.
+
+A robot's description (:class:`~estimator_service.system.System`) may name a prediction
+model and, per sensor type, a sensor model (:class:`~estimator_service.system.ModelSpec`).
+This module loads them (:func:`resolve`), fits their parameters to the training log by
+least squares on one-step predictions and on readings, as the paper fits the blimp's
+(:func:`fit_user_models`), stores the fitted values in ``parametric.json``
+(:func:`save_user_models`, :func:`load_user_models`) and evaluates them as the filters'
+:class:`~estimator_service.models.base.PredictionModel` and
+:class:`~estimator_service.models.base.ObservationModel` (:class:`UserPrediction`,
+:class:`UserSensorModel`). With them a robot has every model kind the blimp has:
+``param`` is the fitted models, ``egp`` and ``hetgp`` a GP on their residual.
+
+Contracts (``M`` rows, every array float64):
+
+- prediction ``f(x (M, n), u (M, k), p, dt) -> (M, n)``: the next state;
+- sensor ``h(x (M, n), c, p) -> (M, size)``: the readings, with ``c`` a mapping from the
+  type's constant names to ``(M,)`` arrays (each row's sensor's values);
+- optional Jacobians of the same arguments: ``(M, n, n)`` and ``(M, size, n)`` with
+  respect to ``x``; central differences otherwise (angle outputs' differences wrapped).
+
+``p`` maps each parameter name (fitted and fixed) to a float. The noise variance of each
+output is the mean squared residual on the training log, never below the description's
+noise floor.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import json
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from estimator_service.files import atomic_write_text
+from estimator_service.models.base import ModelOutput, controls_for
+from estimator_service.reprs import short_repr
+from estimator_service.system import ModelSpec, System, wrap_columns
+
+__all__ = [
+    "ENTRY_POINT_GROUP",
+    "USER_MODELS_FILE",
+    "FittedModel",
+    "UserModelError",
+    "UserPrediction",
+    "UserSensorModel",
+    "fit_user_models",
+    "load_user_models",
+    "resolve",
+    "save_user_models",
+    "user_models",
+]
+
+FloatArray = NDArray[np.float64]
+ENTRY_POINT_GROUP = "gpbf.models"
+USER_MODELS_FILE = "parametric.json"
+USER_MODELS_FORMAT = "gpbf-user-models"
+_REL_STEP = 1e-6  # central differences: step relative to max(1, |x|)
+_FIT_EVALS = 200  # least-squares function evaluations per model
+
+
+class UserModelError(ValueError):
+    """A user's model cannot be loaded, fitted or evaluated; the message names it."""
+
+
+def resolve(ref: str) -> Callable[..., Any]:
+    """The callable ``"package.module:attribute"`` names, or the entry point ``ref`` in the
+    group :data:`ENTRY_POINT_GROUP`."""
+    module, _, attr = ref.partition(":")
+    try:
+        if not attr:
+            found = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP, name=ref)
+            if not found:
+                raise UserModelError(
+                    f"model {ref!r}: no entry point of that name in group {ENTRY_POINT_GROUP!r}"
+                )
+            obj = next(iter(found)).load()
+        else:
+            obj = importlib.import_module(module)
+            for part in attr.split("."):
+                obj = getattr(obj, part)
+    except UserModelError:
+        raise
+    except Exception as exc:  # an import runs the user's code: any error is theirs
+        hint = " (is its folder on PYTHONPATH?)" if isinstance(exc, ModuleNotFoundError) else ""
+        raise UserModelError(f"model {ref!r} cannot be loaded: {type(exc).__name__}: {exc}{hint}") from None
+    if not callable(obj):
+        raise UserModelError(f"model {ref!r} is not callable")
+    return obj
+
+
+def _checked(out: object, shape: tuple[int, ...], ref: str) -> FloatArray:
+    """``out`` as a float64 array of ``shape``, finite, or a UserModelError naming ``ref``."""
+    try:
+        a = np.asarray(out, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise UserModelError(f"model {ref!r} returned something that is not numbers ({exc})") from None
+    if a.shape != shape:
+        raise UserModelError(f"model {ref!r} returned shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise UserModelError(f"model {ref!r} returned NaN or Inf")
+    return a
+
+
+def _call(fn: Callable[..., Any], ref: str, shape: tuple[int, ...], *args: object) -> FloatArray:
+    try:
+        out = fn(*args)
+    except UserModelError:
+        raise
+    except Exception as exc:
+        raise UserModelError(f"model {ref!r} raised {type(exc).__name__}: {exc}") from None
+    return _checked(out, shape, ref)
+
+
+def wrapped_jacobian(
+    f: Callable[[FloatArray, NDArray[np.intp]], FloatArray], x: FloatArray, periods: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``f`` at ``x (M, d)`` and its central-difference Jacobian ``(M, P, d)`` from one call.
+
+    ``f(points (N, d), rows (N,))`` gets each point with the row of ``x`` it belongs to (so
+    per-row arguments such as controls line up); differences of outputs with a period > 0
+    (``periods (P,)``) are wrapped, so an angle output crossing its cut does not jump.
+    """
+    m, d = x.shape
+    h = _REL_STEP * np.maximum(1.0, np.abs(x))  # (M, d)
+    steps = h[:, :, None] * np.eye(d)  # (M, d, d)
+    pts = np.concatenate([x[:, None, :], x[:, None, :] + steps, x[:, None, :] - steps], axis=1)
+    rows = np.repeat(np.arange(m), 2 * d + 1)
+    vals = f(pts.reshape(-1, d), rows).reshape(m, 2 * d + 1, -1)
+    diff = wrap_columns(vals[:, 1 : d + 1] - vals[:, d + 1 :], periods)
+    return vals[:, 0], (diff / (2.0 * h[:, :, None])).transpose(0, 2, 1)
+
+
+@dataclass(frozen=True)
+class FittedModel:
+    """A :class:`~estimator_service.system.ModelSpec` with its fitted values.
+
+    Attributes
+    ----------
+    spec
+        What the description says.
+    values
+        Every parameter (fitted and fixed) by name.
+    noise_var: (P,)
+        Per output, the mean squared residual on the training log, at least the floor.
+    """
+
+    spec: ModelSpec
+    values: Mapping[str, float]
+    noise_var: FloatArray
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "function": self.spec.function,
+            "values": dict(self.values),
+            "noise_var": self.noise_var.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, spec: ModelSpec, d: object, size: int, where: str) -> FittedModel:
+        if not isinstance(d, Mapping) or d.get("function") != spec.function:
+            raise UserModelError(f"{where}: fitted for another function than {spec.function!r}: retrain")
+        values = d.get("values")
+        names = {k for k, _ in spec.params} | {k for k, _ in spec.fixed}
+        if not isinstance(values, Mapping) or set(values) != names:
+            raise UserModelError(f"{where}: 'values' must name exactly {sorted(names)}")
+        vals = {str(k): v for k, v in values.items()}
+        var = d.get("noise_var")
+        ok = all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in vals.values()
+        )
+        ok = ok and isinstance(var, list) and len(var) == size
+        ok = ok and all(
+            isinstance(v, int | float) and not isinstance(v, bool) and v > 0 and math.isfinite(v) for v in var
+        )
+        if not ok:
+            raise UserModelError(
+                f"{where}: values must be finite numbers and 'noise_var' {size} finite numbers > 0"
+            )
+        return cls(spec, {k: float(v) for k, v in vals.items()}, np.array(var, dtype=np.float64))
+
+
+@dataclass(frozen=True, eq=False)
+class UserPrediction:
+    """The user's prediction model as a :class:`~estimator_service.models.base.PredictionModel`:
+    the mean state change ``f(x, u) - x`` (angles wrapped), the fitted noise variance."""
+
+    __repr__ = short_repr
+
+    fitted: FittedModel
+    system: System
+    function: Callable[..., Any] = field(init=False, repr=False)
+    jacobian: Callable[..., Any] | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        spec = self.fitted.spec
+        object.__setattr__(self, "function", resolve(spec.function))
+        object.__setattr__(self, "jacobian", None if spec.jacobian is None else resolve(spec.jacobian))
+
+    @property
+    def state_dim(self) -> int:
+        return self.system.state_dim
+
+    @property
+    def control_dim(self) -> int:
+        return self.system.control_dim
+
+    def next_state(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """``f(x (M, n), u (M, k))``: the next states ``(M, n)``."""
+        args = (x, u, self.fitted.values, self.system.dt)
+        return _call(self.function, self.fitted.spec.function, x.shape, *args)
+
+    def change(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """Mean change ``(M, n)``, angles wrapped."""
+        return self.system.state_error(self.next_state(x, controls_for(u, len(x))), x)
+
+    def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        x = np.asarray(x, dtype=np.float64)
+        uu = controls_for(u, x.shape[0])
+        n = self.state_dim
+        if not jac:
+            mean, j = self.change(x, uu), None
+        elif self.jacobian is not None:
+            mean = self.change(x, uu)
+            ref = self.fitted.spec.jacobian or ""
+            j = _call(self.jacobian, ref, (len(x), n, n), x, uu, self.fitted.values, self.system.dt) - np.eye(
+                n
+            )
+        else:
+            nxt, jn = wrapped_jacobian(lambda q, rows: self.next_state(q, uu[rows]), x, self.system_periods)
+            mean, j = self.system.state_error(nxt, x), jn - np.eye(n)
+        return ModelOutput(mean, np.broadcast_to(self.fitted.noise_var, mean.shape), j)
+
+    @property
+    def system_periods(self) -> FloatArray:
+        return np.asarray(self.system.state_periods)
+
+
+@dataclass(frozen=True, eq=False)
+class UserSensorModel:
+    """One sensor type's model over its sensors ``S`` (readings side by side, sensor by
+    sensor: ``obs_dim = S * size``), as an
+    :class:`~estimator_service.models.base.ObservationModel`.
+
+    Attributes
+    ----------
+    fitted
+        The type's fitted model.
+    constant_names
+        The type's constants.
+    constants: (S, c)
+        Each sensor's constants.
+    periods: (size,)
+        The type's output periods.
+    state_dim
+        ``n``.
+    """
+
+    __repr__ = short_repr
+
+    fitted: FittedModel
+    constant_names: tuple[str, ...]
+    constants: FloatArray
+    periods: FloatArray
+    state_dim: int
+    function: Callable[..., Any] = field(init=False, repr=False)
+    jacobian: Callable[..., Any] | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        spec = self.fitted.spec
+        object.__setattr__(self, "function", resolve(spec.function))
+        object.__setattr__(self, "jacobian", None if spec.jacobian is None else resolve(spec.jacobian))
+
+    @property
+    def size(self) -> int:
+        return len(self.periods)
+
+    @property
+    def obs_dim(self) -> int:
+        return self.size * len(self.constants)
+
+    def readings(self, x: FloatArray, c: FloatArray) -> FloatArray:
+        """``h(x (N, n), c (N, c))``: readings ``(N, size)``."""
+        consts = {name: c[:, i] for i, name in enumerate(self.constant_names)}
+        return _call(
+            self.function, self.fitted.spec.function, (len(x), self.size), x, consts, self.fitted.values
+        )
+
+    def readings_and_jacobian(self, x: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Readings ``(N, size)`` and ``d h / d x`` ``(N, size, n)``."""
+        if self.jacobian is None:
+            return wrapped_jacobian(lambda q, rows: self.readings(q, c[rows]), x, self.periods)
+        consts = {name: c[:, i] for i, name in enumerate(self.constant_names)}
+        ref = self.fitted.spec.jacobian or ""
+        jac = _call(self.jacobian, ref, (len(x), self.size, x.shape[1]), x, consts, self.fitted.values)
+        return self.readings(x, c), jac
+
+    def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
+        x = np.asarray(x, dtype=np.float64)
+        m, s = len(x), len(self.constants)
+        xs, cs = np.tile(x, (s, 1)), np.repeat(self.constants, m, axis=0)  # sensor-major rows
+        if jac:
+            mean, j = self.readings_and_jacobian(xs, cs)
+            j = j.reshape(s, m, self.size, -1).transpose(1, 0, 2, 3).reshape(m, self.obs_dim, -1)
+        else:
+            mean, j = self.readings(xs, cs), None
+        mean = mean.reshape(s, m, self.size).transpose(1, 0, 2).reshape(m, self.obs_dim)
+        return ModelOutput(mean, np.broadcast_to(np.tile(self.fitted.noise_var, s), mean.shape), j)
+
+
+# -- fitting ------------------------------------------------------------------------------------
+
+
+def _least_squares(
+    spec: ModelSpec, residual: Callable[[Mapping[str, float]], FloatArray]
+) -> dict[str, float]:
+    """The spec's parameters minimising ``|residual(values)|^2`` (fixed ones held)."""
+    fixed = dict(spec.fixed)
+    names = [k for k, _ in spec.params]
+    if not names:
+        return fixed
+
+    def values(z: FloatArray) -> dict[str, float]:
+        return {**fixed, **{k: float(v) for k, v in zip(names, z, strict=True)}}
+
+    start = np.array([v for _, v in spec.params])
+    res = least_squares(lambda z: residual(values(z)).ravel(), start, method="trf", max_nfev=_FIT_EVALS)
+    return values(res.x)
+
+
+def _noise_var(err: FloatArray, floor: Sequence[float]) -> FloatArray:
+    """Mean squared residual per output ``(P,)``, at least ``floor**2`` (and > 0)."""
+    return np.maximum(np.mean(err * err, axis=0), np.maximum(np.square(floor), 1e-12))
+
+
+def fit_prediction(system: System, x: FloatArray, u: FloatArray, x_next: FloatArray) -> FittedModel:
+    """The prediction model's parameters fitted to transitions ``x (T, n), u (T, k) ->
+    x_next (T, n)``: residuals per state scaled by the state change's spread."""
+    spec = system.prediction_model
+    if spec is None:
+        raise UserModelError(f"system {system.name!r} names no 'prediction_model'")
+    fn = resolve(spec.function)
+    scale = np.maximum(system.state_error(x_next, x).std(axis=0), 1e-9)
+
+    def error(vals: Mapping[str, float]) -> FloatArray:
+        return system.state_error(_call(fn, spec.function, x.shape, x, u, vals, system.dt), x_next)
+
+    values = _least_squares(spec, lambda vals: error(vals) / scale)
+    return FittedModel(spec, values, _noise_var(error(values), system.process_noise_floor))
+
+
+def fit_sensor_type(
+    system: System, type_name: str, x: FloatArray, c: FloatArray, z: FloatArray
+) -> FittedModel:
+    """A sensor type's model fitted to states ``x (T, n)``, constants ``c (T, c)`` and
+    readings ``z (T, size)`` of all its sensors; the floor is the largest of its sensors'."""
+    stype = system.sensor_type(type_name)
+    spec = stype.model
+    if spec is None:
+        raise UserModelError(f"sensor type {type_name!r} has no 'model'")
+    ks = system.sensors_of_type()[type_name]
+    periods = np.asarray(system.sensors[ks[0]].periods)
+    floor = np.max([system.sensors[k].noise_floor for k in ks], axis=0)
+    fn = resolve(spec.function)
+    scale = np.maximum(z.std(axis=0), 1e-9)
+
+    def error(vals: Mapping[str, float]) -> FloatArray:
+        consts = {name: c[:, i] for i, name in enumerate(stype.constants)}
+        return wrap_columns(_call(fn, spec.function, z.shape, x, consts, vals) - z, periods)
+
+    values = _least_squares(spec, lambda vals: error(vals) / scale)
+    return FittedModel(spec, values, _noise_var(error(values), floor))
+
+
+@dataclass(frozen=True)
+class UserModels:
+    """A system's fitted parametric models: the prediction and one per sensor type."""
+
+    prediction: FittedModel
+    sensor_types: Mapping[str, FittedModel]
+
+
+def fit_user_models(
+    system: System,
+    transitions: tuple[FloatArray, FloatArray, FloatArray],
+    readings: Mapping[str, tuple[FloatArray, FloatArray, FloatArray]],
+) -> UserModels:
+    """Every parametric model of ``system``: the prediction on ``transitions (x, u,
+    x_next)`` and each type on ``readings[type] (x, c, z)``."""
+    types = {t: fit_sensor_type(system, t, *readings[t]) for t in system.sensors_of_type()}
+    return UserModels(fit_prediction(system, *transitions), types)
+
+
+def save_user_models(models: UserModels, path: str | os.PathLike[str]) -> Path:
+    """Write the fitted values and noise variances as JSON (atomically)."""
+    doc = {
+        "format": USER_MODELS_FORMAT, "version": 1, "prediction": models.prediction.to_dict(),
+        "sensor_types": {t: m.to_dict() for t, m in models.sensor_types.items()},
+    }  # fmt: skip
+    return atomic_write_text(path, json.dumps(doc, indent=1))
+
+
+def load_user_models(path: str | os.PathLike[str], system: System) -> UserModels:
+    """Read :func:`save_user_models`' file for ``system`` (checked against its description)."""
+    where = f"parametric model file {os.fspath(path)!r}"
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise UserModelError(f"{where}: cannot be read ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != USER_MODELS_FORMAT:
+        raise UserModelError(f"{where}: not a {USER_MODELS_FORMAT} file")
+    assert system.prediction_model is not None  # has_parametric was checked by the caller
+    pred = FittedModel.from_dict(system.prediction_model, doc.get("prediction"), system.state_dim, where)
+    types = doc.get("sensor_types")
+    if not isinstance(types, dict) or set(types) != set(system.sensors_of_type()):
+        raise UserModelError(f"{where}: 'sensor_types' must hold {sorted(system.sensors_of_type())}")
+    fitted = {}
+    for name, ks in system.sensors_of_type().items():
+        spec = system.sensor_type(name).model
+        assert spec is not None
+        fitted[name] = FittedModel.from_dict(
+            spec, types[name], system.sensors[ks[0]].size, f"{where}, type {name!r}"
+        )
+    return UserModels(pred, fitted)
+
+
+def user_models(models: UserModels, system: System) -> tuple[UserPrediction, dict[str, UserSensorModel]]:
+    """The filters' models of ``models``: the prediction and one observation model per type
+    (its sensors side by side, in the system's sensor order)."""
+    sensors = {}
+    for name, ks in system.sensors_of_type().items():
+        sensors[name] = UserSensorModel(
+            models.sensor_types[name], system.sensor_type(name).constants,
+            np.array([system.sensors[k].constants for k in ks], dtype=np.float64).reshape(len(ks), -1),
+            np.asarray(system.sensors[ks[0]].periods), system.state_dim,
+        )  # fmt: skip
+    return UserPrediction(models.prediction, system), sensors
