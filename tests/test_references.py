@@ -1,0 +1,143 @@
+"""Equations against outside references: the unscented transform's published weights and
+the exact moments of a quadratic, the UKF's observation noise at the mean, the exact GP's
+variance output by output with distinct hyperparameters against a dense solve, and the
+divergence flag and the service's gate at their chi-square quantiles."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from estimator_service.filters import UKF, GaussianBelief
+from estimator_service.filters.batched import implausible_many
+from estimator_service.filters.common import StepInfo, implausible
+from estimator_service.filters.kalman import sigma_weights
+from estimator_service.gp.base import Scaler
+from estimator_service.gp.exact import STACKED_MAX_QUERIES, ExactGP
+from estimator_service.gp.kernel import split_theta
+from estimator_service.models.base import LinearGaussianObservation, ModelOutput
+from estimator_service.service.limits import gated
+
+
+@pytest.mark.parametrize(
+    ("n", "alpha", "beta", "kappa", "wm0", "wc0", "wi", "gamma"),
+    [
+        # Wan & van der Merwe (2000), eq. 15: lambda = alpha^2 (n + kappa) - n,
+        # Wm0 = lambda / (n + lambda), Wc0 = Wm0 + 1 - alpha^2 + beta, Wi = 1 / (2 (n + lambda)),
+        # worked by hand for these settings
+        (2, 1.0, 2.0, 0.0, 0.0, 2.0, 0.25, 2**0.5),
+        (3, 0.5, 2.0, 1.0, -2.0, 0.75, 0.5, 1.0),
+        (1, 1.0, 0.0, 2.0, 2 / 3, 2 / 3, 1 / 6, 3**0.5),
+        (12, 1e-3, 2.0, 0.0, 1 - 1e6, 1 - 1e6 + 3 - 1e-6, 1 / (2 * 12e-6), 12**0.5 * 1e-3),
+    ],
+)
+def test_sigma_weights_are_the_published_ones(n, alpha, beta, kappa, wm0, wc0, wi, gamma) -> None:
+    wm, wc, g = sigma_weights(n, alpha, beta, kappa)
+    assert wm[0] == pytest.approx(wm0, rel=1e-9, abs=1e-12)
+    assert wc[0] == pytest.approx(wc0, rel=1e-9, abs=1e-12)
+    np.testing.assert_allclose(wm[1:], wi, rtol=1e-9)
+    np.testing.assert_allclose(wc[1:], wi, rtol=1e-9)
+    assert g == pytest.approx(gamma, rel=1e-9)
+
+
+@dataclass(frozen=True)
+class Square:
+    """``x' = x^2`` (a change of ``x^2 - x``), no noise: moments known in closed form."""
+
+    state_dim: int = 1
+    control_dim: int = 1
+
+    def predict(self, x, u, *, jac=False, var=True) -> ModelOutput:
+        return ModelOutput(x * x - x, np.zeros_like(x), 2 * x[:, :, None] - 1 if jac else None)
+
+
+@pytest.mark.parametrize(("beta", "kappa"), [(0.0, 2.0), (2.0, 2.0), (2.0, 0.0), (0.0, 0.5)])
+def test_the_unscented_prediction_of_a_square_has_its_closed_form_moments(beta, kappa) -> None:
+    """For ``y = x^2``, ``x ~ N(m, s^2)``, the transform's mean is exact, ``m^2 + s^2``, for any
+    weights, and its variance is ``4 m^2 s^2 + (n + lambda - 1 + beta + 1 - alpha^2) s^4``
+    (worked from the sigma points; the true ``4 m^2 s^2 + 2 s^4`` at ``kappa = 2``, ``beta = 0``)."""
+    m, s2, alpha, n = 0.7, 0.3, 1.0, 1
+    ukf = UKF(Square(), LinearGaussianObservation(np.eye(1), np.ones(1)), alpha=alpha, beta=beta, kappa=kappa)
+    prior = ukf.predict(GaussianBelief(np.array([m]), np.array([[s2]])), np.zeros(1), None)
+    lam = alpha**2 * (n + kappa) - n
+    assert prior.mean[0] == pytest.approx(m * m + s2, rel=1e-12)
+    expected = 4 * m * m * s2 + (n + lam - 1 + beta + 1 - alpha**2) * s2 * s2
+    assert prior.cov[0, 0] == pytest.approx(expected, rel=1e-10)
+    if (beta, kappa) == (0.0, 2.0):
+        assert prior.cov[0, 0] == pytest.approx(4 * m * m * s2 + 2 * s2 * s2, rel=1e-10)
+
+
+@dataclass(frozen=True)
+class StateDependentNoise:
+    """``z = x_0`` with noise variance ``0.01 + x_0^2``."""
+
+    state_dim: int = 2
+    obs_dim: int = 1
+
+    def observe(self, x, *, jac=False, var=True) -> ModelOutput:
+        j = np.broadcast_to(np.array([[1.0, 0.0]]), (len(x), 1, 2)) if jac else None
+        return ModelOutput(x[:, :1].copy(), 0.01 + x[:, :1] ** 2, j)
+
+
+def test_the_ukf_takes_the_observation_noise_at_the_mean() -> None:
+    """``noise="mean"`` (the paper's): a linear observation's update is the Kalman update with
+    ``R`` at the prior mean, not at any other sigma point."""
+    ukf = UKF(Square(state_dim=2), StateDependentNoise(), noise="mean")
+    prior = GaussianBelief(np.array([0.8, -0.3]), np.array([[0.5, 0.1], [0.1, 0.4]]))
+    post, _ = ukf.update(prior, np.array([1.1]), np.array([True]), None)
+    s = prior.cov[0, 0] + 0.01 + 0.8**2
+    gain = prior.cov[:, 0] / s
+    np.testing.assert_allclose(post.mean, prior.mean + gain * (1.1 - 0.8), rtol=1e-10)
+    np.testing.assert_allclose(post.cov, prior.cov - np.outer(gain, gain) * s, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("queries", [5, STACKED_MAX_QUERIES + 9])
+def test_exact_gp_variances_per_output_against_a_dense_solve(queries: int) -> None:
+    """Three outputs with distinct length scales, signal and noise variances, on both
+    prediction paths (all outputs stacked, and output by output beyond
+    ``STACKED_MAX_QUERIES``), against ``sf2 - k^T (K + sn2 I)^-1 k + sn2`` by ``numpy.linalg``."""
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-2, 2, size=(40, 2)), rng.normal(size=(40, 3))
+    theta = np.log([[0.7, 1.5, 1.0, 0.1], [1.9, 0.4, 2.5, 0.3], [1.1, 1.1, 0.4, 0.02]])
+    xsc, ysc = (
+        Scaler(np.array([0.1, -0.2]), np.array([1.3, 0.8])),
+        Scaler(np.zeros(3), np.array([1.0, 2.0, 0.5])),
+    )
+    gp = ExactGP.from_theta(xsc.apply(x), ysc.apply(y), theta, xsc, ysc)
+    q = rng.uniform(-2, 2, size=(queries, 2))
+    out = gp.predict(q, return_var=True)
+    xs, qs = xsc.apply(x), xsc.apply(q)
+    for p in range(3):
+        ell, sf2, sn2 = split_theta(theta[p])
+
+        def k(a, b, ell=ell, sf2=sf2):
+            return sf2 * np.exp(-0.5 * (((a[:, None, :] - b[None, :, :]) / ell) ** 2).sum(-1))
+
+        kxx = k(xs, xs) + sn2 * np.eye(len(xs))
+        kq = k(xs, qs)
+        var = sf2 - np.einsum("ij,ij->j", kq, np.linalg.solve(kxx, kq)) + sn2
+        np.testing.assert_allclose(out.var[:, p], var * ysc.std[p] ** 2, rtol=1e-8)
+        mean = kq.T @ np.linalg.solve(kxx, ysc.apply(y)[:, p])
+        np.testing.assert_allclose(out.mean[:, p], mean * ysc.std[p] + ysc.mean[p], rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("dof", [1, 3, 10])
+def test_divergence_flag_sits_at_its_chi_square_quantile(dof: int) -> None:
+    """A NIS flags divergence exactly where its chi-square tail probability falls below
+    ``DIVERGENCE_P`` (1e-9): just below the quantile not, just above yes, on the single and
+    the batched path."""
+    edge = chi2.isf(1e-9, dof)
+    nis = np.array([edge * (1 - 1e-6), edge * (1 + 1e-6)])
+    assert [implausible(float(v), dof) for v in nis] == [False, True]
+    np.testing.assert_array_equal(implausible_many(nis, dof), [False, True])
+
+
+@pytest.mark.parametrize(("gate_p", "dof"), [(1e-3, 1), (1e-6, 4), (0.05, 10)])
+def test_the_service_gate_sits_at_its_chi_square_quantile(gate_p: float, dof: int) -> None:
+    edge = chi2.isf(gate_p, dof)
+    assert not gated(StepInfo(edge * (1 - 1e-9), dof), gate_p)
+    assert gated(StepInfo(edge * (1 + 1e-9), dof), gate_p)
+    assert not gated(StepInfo(1e300, dof), 0.0)  # a gate of 0 is off
