@@ -189,14 +189,12 @@ class FittedModel:
 
 
 @dataclass(frozen=True, eq=False)
-class UserPrediction:
-    """The user's prediction model as a :class:`~estimator_service.models.base.PredictionModel`:
-    the mean state change ``f(x, u) - x`` (angles wrapped), the fitted noise variance."""
+class _FittedFunctions:
+    """A fitted model with its function and optional Jacobian resolved once."""
 
     __repr__ = short_repr
 
     fitted: FittedModel
-    system: System
     function: Callable[..., Any] = field(init=False, repr=False)
     jacobian: Callable[..., Any] | None = field(init=False, repr=False)
 
@@ -204,6 +202,14 @@ class UserPrediction:
         spec = self.fitted.spec
         object.__setattr__(self, "function", resolve(spec.function))
         object.__setattr__(self, "jacobian", None if spec.jacobian is None else resolve(spec.jacobian))
+
+
+@dataclass(frozen=True, eq=False)
+class UserPrediction(_FittedFunctions):
+    """The user's prediction model as a :class:`~estimator_service.models.base.PredictionModel`:
+    the mean state change ``f(x, u) - x`` (angles wrapped), the fitted noise variance."""
+
+    system: System
 
     @property
     def state_dim(self) -> int:
@@ -245,7 +251,7 @@ class UserPrediction:
 
 
 @dataclass(frozen=True, eq=False)
-class UserSensorModel:
+class UserSensorModel(_FittedFunctions):
     """One sensor type's model over its sensors ``S`` (readings side by side, sensor by
     sensor: ``obs_dim = S * size``), as an
     :class:`~estimator_service.models.base.ObservationModel`.
@@ -264,20 +270,10 @@ class UserSensorModel:
         ``n``.
     """
 
-    __repr__ = short_repr
-
-    fitted: FittedModel
     constant_names: tuple[str, ...]
     constants: FloatArray
     periods: FloatArray
     state_dim: int
-    function: Callable[..., Any] = field(init=False, repr=False)
-    jacobian: Callable[..., Any] | None = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        spec = self.fitted.spec
-        object.__setattr__(self, "function", resolve(spec.function))
-        object.__setattr__(self, "jacobian", None if spec.jacobian is None else resolve(spec.jacobian))
 
     @property
     def size(self) -> int:
