@@ -53,6 +53,7 @@ __all__ = [
     "make_filter",
     "noise_floors",
     "observation_files",
+    "observation_parts",
     "warm_up",
 ]
 
@@ -91,16 +92,22 @@ def load_parametric(folder: str | os.PathLike[str], system: System) -> Parametri
 
         ode, cam = load_blimp(folder / PARAMETRIC_FILE)
         means = {
-            f"cam{k}": partial(_columns_of, cam.mean, system.sensor_slice(k)) for k in range(system.n_sensors)
+            part: partial(_columns_of, cam.mean, _columns(system, ks))
+            for part, ks in observation_parts(system).items()
         }
         return Parametric(ode, cam, ode.change, means)
     pred, types = user_models(load_user_models(folder / USER_MODELS_FILE, system), system)
-    n = system.state_dim
-    means = {f"type-{t}": lambda q, m=m: m.readings(q[:, :n], q[:, n:]) for t, m in types.items()}
-    jacobians = {f"type-{t}": partial(_state_jacobian, m, n) for t, m in types.items()}
-    columns = [_type_columns(system, t) for t in types]
-    stacked = StackedObservationModel(tuple(types.values()), tuple(columns))
+    n, parts = system.state_dim, {_type_part(t): m for t, m in types.items()}
+    means = {part: partial(_readings_at, m, n) for part, m in parts.items()}
+    jacobians = {part: partial(_state_jacobian, m, n) for part, m in parts.items()}
+    columns = [_columns(system, observation_parts(system)[part]) for part in parts]
+    stacked = StackedObservationModel(tuple(parts.values()), tuple(columns))
     return Parametric(pred, stacked, pred.change, means, jacobians)
+
+
+def _readings_at(model: UserSensorModel, n: int, q: np.ndarray) -> np.ndarray:
+    """A type's readings at its GP's inputs ``q = [x, c]`` ``(M, n + c)``."""
+    return model.readings(q[:, :n], q[:, n:])
 
 
 def _state_jacobian(model: UserSensorModel, n: int, q: np.ndarray) -> np.ndarray:
@@ -111,24 +118,33 @@ def _state_jacobian(model: UserSensorModel, n: int, q: np.ndarray) -> np.ndarray
     return np.concatenate([jac, np.zeros((*jac.shape[:2], q.shape[1] - n))], axis=2)
 
 
-def _columns_of(f: Callable[[np.ndarray], np.ndarray], sl: slice, x: np.ndarray) -> np.ndarray:
-    return f(x)[:, sl]
+def _columns_of(f: Callable[[np.ndarray], np.ndarray], cols: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return f(x)[:, cols]
 
 
-def _type_columns(system: System, type_name: str) -> np.ndarray:
-    """The observation columns of a type's sensors, sensor by sensor."""
-    ks = system.sensors_of_type()[type_name]
-    return np.concatenate([np.arange(system.sensor_slice(k).start, system.sensor_slice(k).stop) for k in ks])
+def _columns(system: System, sensors: tuple[int, ...]) -> np.ndarray:
+    """The observation columns of ``sensors``, sensor by sensor."""
+    return np.concatenate(
+        [np.arange(system.sensor_slice(k).start, system.sensor_slice(k).stop) for k in sensors]
+    )
+
+
+def _type_part(type_name: str) -> str:
+    return f"type-{type_name}"
+
+
+def observation_parts(system: System) -> dict[str, tuple[int, ...]]:
+    """The observation models' parts and the sensors each covers: ``cam<k>`` for each sensor
+    without a type (its own model), ``type-<name>`` for each sensor type (one model its
+    sensors share, with their constants as inputs). The one owner of the part names."""
+    parts = {f"cam{k}": (k,) for k, s in enumerate(system.sensors) if s.type is None}
+    parts.update({_type_part(t): ks for t, ks in system.sensors_of_type().items()})
+    return parts
 
 
 def observation_files(system: System, kind: str) -> dict[str, str]:
-    """``{part: file name}`` of a GP kind's observation models: ``cam<k>`` for each sensor
-    without a type, ``type-<name>`` for each sensor type (one GP its sensors share)."""
-    parts = {
-        f"cam{k}": f"observation_{kind}_cam{k}.npz" for k, s in enumerate(system.sensors) if s.type is None
-    }
-    parts.update({f"type-{t}": f"observation_{kind}_type-{t}.npz" for t in system.sensors_of_type()})
-    return parts
+    """``{part: file name}`` of a GP kind's observation models (:func:`observation_parts`)."""
+    return {part: f"observation_{kind}_{part}.npz" for part in observation_parts(system)}
 
 
 def load_models(
@@ -201,24 +217,21 @@ def _observation(folder: Path, kind: str, system: System, param: Parametric | No
         extra = {} if param is None else {"mean_function": lambda x: param.observation.observe(x).mean}
         return GPObservationModel(load_gp(single, **extra))
     parts, columns = [], []
-    types = system.sensors_of_type()
-    for part, name in observation_files(system, kind).items():
+    files = observation_files(system, kind)
+    for part, ks in observation_parts(system).items():
         extra = {}
         if param is not None:
             extra = {
                 "mean_function": param.sensor_means[part],
                 "mean_jacobian": param.sensor_jacobians.get(part),
             }
-        gp = load_gp(folder / name, **extra)
-        if part.startswith("type-"):
-            t = part.removeprefix("type-")
-            consts = np.array([system.sensors[k].constants for k in types[t]], dtype=np.float64)
-            parts.append(SharedGPObservation(gp, consts.reshape(len(types[t]), -1)))
-            columns.append(_type_columns(system, t))
-        else:
-            sl = system.sensor_slice(int(part.removeprefix("cam")))
+        gp = load_gp(folder / files[part], **extra)
+        if system.sensors[ks[0]].type is None:
             parts.append(GPObservationModel(gp))
-            columns.append(np.arange(sl.start, sl.stop))
+        else:
+            consts = np.array([system.sensors[k].constants for k in ks], dtype=np.float64)
+            parts.append(SharedGPObservation(gp, consts.reshape(len(ks), -1)))
+        columns.append(_columns(system, ks))
     in_order = all(s.type is None for s in system.sensors)
     return StackedObservationModel(tuple(parts), None if in_order else tuple(columns))
 

@@ -32,6 +32,7 @@ from estimator_service.factory import (
     Parametric,
     load_parametric,
     observation_files,
+    observation_parts,
 )
 from estimator_service.files import atomic_write_text
 from estimator_service.flight import Flight
@@ -234,17 +235,18 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
     timings: dict[str, float] = {}
     n = system.state_dim
     param = None
+    inp, change = prediction_data(flights)
+    all_obs = observation_sets(flights, system)
     if system.has_parametric and any(k == "param" or k in ENHANCED_KINDS for k in kinds):
         t0 = time.perf_counter()
-        param = _fit_parametric(out, flights, system)
+        param = _fit_parametric(out, flights, system, (inp, change), all_obs)
         timings["param"] = time.perf_counter() - t0
-    inp, change = prediction_data(flights)
     if exclude is not None:
         keep = ~exclude(inp)
         inp, change = inp[keep], change[keep]
     rows = _subsample(len(inp), settings.n_points, rng)
     obs_sets = {}
-    for part, (xs, zs) in observation_sets(flights, system).items():
+    for part, (xs, zs) in all_obs.items():
         sel = _subsample(len(xs), settings.n_points, rng)
         obs_sets[part] = (xs[sel], zs[sel])
     angles = tuple(system.circle_inputs or ())
@@ -277,16 +279,16 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         claimed = {"prediction": _claimed_std(pred, x, system.state, system.process_noise_floor)}
         for part, name in observation_files(system, kind).items():
             xs, zs = obs_sets[part]
-            periods = np.asarray(_part_sensor(system, part).periods)
+            sensor = _part_sensor(system, part)
             if kind in ENHANCED_KINDS:
                 mean = param.sensor_means[part]
-                # the residual of an angle output on its circle: z - f(x) wrapped
-                zs = mean(xs) + wrap_columns(zs - mean(xs), periods)
-                obs = fit_enhanced(xs, zs, mean, fit, base=base_for(name))
+                fx = mean(xs)  # the residual of an angle output on its circle: z - f(x) wrapped
+                obs = fit_enhanced(
+                    xs, fx + wrap_columns(zs - fx, np.asarray(sensor.periods)), mean, fit, base=base_for(name)
+                )
             else:
-                obs = _fit_sensor(xs, zs, base_for(name), angles, tuple(periods))
+                obs = _fit_sensor(xs, zs, base_for(name), angles, sensor.periods)
             save_gp(obs, out / name)
-            sensor = _part_sensor(system, part)
             claimed[part] = _claimed_std(obs, xs, sensor.outputs, sensor.noise_floor)
         noise[kind] = claimed
         timings[kind] = time.perf_counter() - t0
@@ -313,41 +315,42 @@ def _parametric_std(out: Path, system: System) -> dict[str, dict]:
         return {}
     fitted = load_user_models(out / USER_MODELS_FILE, system)
     parts = {"prediction": (fitted.prediction.noise_var, system.state, system.process_noise_floor)}
-    for t, m in fitted.sensor_types.items():
-        sensor = _part_sensor(system, f"type-{t}")
-        parts[f"type-{t}"] = (m.noise_var, sensor.outputs, sensor.noise_floor)
+    for part, ks in observation_parts(system).items():
+        sensor = system.sensors[ks[0]]
+        parts[part] = (fitted.sensor_types[sensor.type].noise_var, sensor.outputs, sensor.noise_floor)
     return {part: _named_std(np.sqrt(var), names, floor) for part, (var, names, floor) in parts.items()}
 
 
 def _part_sensor(system: System, part: str) -> Sensor:
-    """The sensor (or a sensor of the type) an observation part models."""
-    if part.startswith("type-"):
-        return system.sensors[system.sensors_of_type()[part.removeprefix("type-")][0]]
-    return system.sensors[int(part.removeprefix("cam"))]
+    """The sensor (or the first sensor of the type) an observation part models."""
+    return system.sensors[observation_parts(system)[part][0]]
 
 
 def observation_sets(flights: Sequence[Flight], system: System) -> dict[str, tuple[FloatArray, FloatArray]]:
     """Training inputs and readings of every observation part
-    (:func:`~estimator_service.factory.observation_files`): a sensor without a type, its
-    states ``(T, n)`` and readings; a sensor type, the states of all its sensors' readings
-    with each sensor's constants appended ``(T, n + c)`` and the readings, sensor by sensor."""
-    sets = {f"cam{k}": observation_data(flights, k) for k, s in enumerate(system.sensors) if s.type is None}
-    for t, ks in system.sensors_of_type().items():
+    (:func:`~estimator_service.factory.observation_parts`): the states of its sensors'
+    readings with each sensor's constants appended ``(T, n + c)`` (``c = 0`` for a sensor
+    without a type) and the readings ``(T, size)``, sensor by sensor."""
+    sets = {}
+    for part, ks in observation_parts(system).items():
         xs, zs = [], []
         for k in ks:
             x, z = observation_data(flights, k)
             xs.append(np.concatenate([x, np.tile(system.sensors[k].constants, (len(x), 1))], axis=1))
             zs.append(z)
-        sets[f"type-{t}"] = (np.concatenate(xs), np.concatenate(zs))
+        sets[part] = (np.concatenate(xs), np.concatenate(zs))
     return sets
 
 
-def _fit_parametric(out: Path, flights: Sequence[Flight], system: System) -> Parametric:
-    """Fit the system's parametric models to all ``flights``, save them into ``out`` and
-    return them as the factory loads them (the blimp's ODE and camera model, or the user's
-    models of :mod:`estimator_service.user_models`)."""
-    n = system.state_dim
-    inp, change = prediction_data(flights)
+def _fit_parametric(
+    out: Path, flights: Sequence[Flight], system: System, transitions: tuple[FloatArray, FloatArray],
+    obs_sets: dict[str, tuple[FloatArray, FloatArray]],
+) -> Parametric:  # fmt: skip
+    """Fit the system's parametric models to all ``flights`` (their ``transitions``, inputs
+    and changes of :func:`prediction_data`, and ``obs_sets`` of :func:`observation_sets`),
+    save them into ``out`` and return them as the factory loads them (the blimp's ODE and
+    camera model, or the user's models of :mod:`estimator_service.user_models`)."""
+    n, (inp, change) = system.state_dim, transitions
     x, u = inp[:, :n], inp[:, n:]
     if system.parametric == "blimp":
         from estimator_service.blimp import fit_parametric, save_parametric
@@ -355,9 +358,8 @@ def _fit_parametric(out: Path, flights: Sequence[Flight], system: System) -> Par
         save_parametric(*fit_parametric(flights, x, u, x + change), out / PARAMETRIC_FILE)
     else:
         readings = {
-            t: (xs[:, :n], xs[:, n:], zs) for t, (xs, zs) in observation_sets(flights, system).items()
+            _part_sensor(system, part).type: (xs[:, :n], xs[:, n:], zs) for part, (xs, zs) in obs_sets.items()
         }
-        readings = {t.removeprefix("type-"): v for t, v in readings.items()}
         save_user_models(fit_user_models(system, (x, u, x + change), readings), out / USER_MODELS_FILE)
     return load_parametric(out, system)
 

@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from estimator_service.files import atomic_write_text
-from estimator_service.models.base import ModelOutput, controls_for
+from estimator_service.models.base import ModelOutput, controls_for, sensor_rows, side_by_side
 from estimator_service.reprs import short_repr
 from estimator_service.system import ModelSpec, System, wrap_columns
 
@@ -172,20 +172,18 @@ class FittedModel:
         names = {k for k, _ in spec.params} | {k for k, _ in spec.fixed}
         if not isinstance(values, Mapping) or set(values) != names:
             raise UserModelError(f"{where}: 'values' must name exactly {sorted(names)}")
-        vals = {str(k): v for k, v in values.items()}
-        var = d.get("noise_var")
-        ok = all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in vals.values()
-        )
-        ok = ok and isinstance(var, list) and len(var) == size
-        ok = ok and all(
-            isinstance(v, int | float) and not isinstance(v, bool) and v > 0 and math.isfinite(v) for v in var
-        )
-        if not ok:
+        vals, var = {str(k): v for k, v in values.items()}, d.get("noise_var")
+        ok = all(map(_is_finite_number, vals.values())) and isinstance(var, list) and len(var) == size
+        if not (ok and all(_is_finite_number(v) and v > 0 for v in var)):
             raise UserModelError(
                 f"{where}: values must be finite numbers and 'noise_var' {size} finite numbers > 0"
             )
         return cls(spec, {k: float(v) for k, v in vals.items()}, np.array(var, dtype=np.float64))
+
+
+def _is_finite_number(v: object) -> bool:
+    """A JSON number (not a bool) that is finite."""
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,24 +228,18 @@ class UserPrediction(_FittedFunctions):
 
     def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         x = np.asarray(x, dtype=np.float64)
-        uu = controls_for(u, x.shape[0])
-        n = self.state_dim
+        uu, n = controls_for(u, x.shape[0]), self.state_dim
         if not jac:
             mean, j = self.change(x, uu), None
         elif self.jacobian is not None:
+            args = (x, uu, self.fitted.values, self.system.dt)
             mean = self.change(x, uu)
-            ref = self.fitted.spec.jacobian or ""
-            j = _call(self.jacobian, ref, (len(x), n, n), x, uu, self.fitted.values, self.system.dt) - np.eye(
-                n
-            )
+            j = _call(self.jacobian, self.fitted.spec.jacobian or "", (len(x), n, n), *args) - np.eye(n)
         else:
-            nxt, jn = wrapped_jacobian(lambda q, rows: self.next_state(q, uu[rows]), x, self.system_periods)
+            periods = np.asarray(self.system.state_periods)
+            nxt, jn = wrapped_jacobian(lambda q, rows: self.next_state(q, uu[rows]), x, periods)
             mean, j = self.system.state_error(nxt, x), jn - np.eye(n)
         return ModelOutput(mean, np.broadcast_to(self.fitted.noise_var, mean.shape), j)
-
-    @property
-    def system_periods(self) -> FloatArray:
-        return np.asarray(self.system.state_periods)
 
 
 @dataclass(frozen=True, eq=False)
@@ -285,31 +277,29 @@ class UserSensorModel(_FittedFunctions):
 
     def readings(self, x: FloatArray, c: FloatArray) -> FloatArray:
         """``h(x (N, n), c (N, c))``: readings ``(N, size)``."""
-        consts = {name: c[:, i] for i, name in enumerate(self.constant_names)}
-        return _call(
-            self.function, self.fitted.spec.function, (len(x), self.size), x, consts, self.fitted.values
-        )
+        args = (x, _named_columns(self.constant_names, c), self.fitted.values)
+        return _call(self.function, self.fitted.spec.function, (len(x), self.size), *args)
 
     def readings_and_jacobian(self, x: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Readings ``(N, size)`` and ``d h / d x`` ``(N, size, n)``."""
         if self.jacobian is None:
             return wrapped_jacobian(lambda q, rows: self.readings(q, c[rows]), x, self.periods)
-        consts = {name: c[:, i] for i, name in enumerate(self.constant_names)}
-        ref = self.fitted.spec.jacobian or ""
-        jac = _call(self.jacobian, ref, (len(x), self.size, x.shape[1]), x, consts, self.fitted.values)
+        args = (x, _named_columns(self.constant_names, c), self.fitted.values)
+        jac = _call(self.jacobian, self.fitted.spec.jacobian or "", (len(x), self.size, x.shape[1]), *args)
         return self.readings(x, c), jac
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
-        x = np.asarray(x, dtype=np.float64)
-        m, s = len(x), len(self.constants)
-        xs, cs = np.tile(x, (s, 1)), np.repeat(self.constants, m, axis=0)  # sensor-major rows
-        if jac:
-            mean, j = self.readings_and_jacobian(xs, cs)
-            j = j.reshape(s, m, self.size, -1).transpose(1, 0, 2, 3).reshape(m, self.obs_dim, -1)
-        else:
-            mean, j = self.readings(xs, cs), None
-        mean = mean.reshape(s, m, self.size).transpose(1, 0, 2).reshape(m, self.obs_dim)
+        s = len(self.constants)
+        xs, cs = sensor_rows(np.asarray(x, dtype=np.float64), self.constants)
+        mean, j = self.readings_and_jacobian(xs, cs) if jac else (self.readings(xs, cs), None)
+        mean = side_by_side(mean, s)
+        j = None if j is None else side_by_side(j, s)
         return ModelOutput(mean, np.broadcast_to(np.tile(self.fitted.noise_var, s), mean.shape), j)
+
+
+def _named_columns(names: Sequence[str], c: FloatArray) -> dict[str, FloatArray]:
+    """The constants ``c (N, c)`` as the mapping a sensor model receives: name -> ``(N,)``."""
+    return {name: c[:, i] for i, name in enumerate(names)}
 
 
 # -- fitting ------------------------------------------------------------------------------------
@@ -368,8 +358,9 @@ def fit_sensor_type(
     fn = resolve(spec.function)
     scale = np.maximum(z.std(axis=0), 1e-9)
 
+    consts = _named_columns(stype.constants, c)
+
     def error(vals: Mapping[str, float]) -> FloatArray:
-        consts = {name: c[:, i] for i, name in enumerate(stype.constants)}
         return wrap_columns(_call(fn, spec.function, z.shape, x, consts, vals) - z, periods)
 
     values = _least_squares(spec, lambda vals: error(vals) / scale)

@@ -23,6 +23,7 @@ from estimator_service.user_models import UserModelError, load_user_models, reso
 LANDMARKS = ((3.0, 0.0), (0.0, 3.0), (-3.0, 0.0), (0.0, -3.0), (2.0, 2.0))
 TRUE = {"k_v": 0.9, "k_w": 1.1, "bias": 0.05}  # the robot's real gains and range bias
 FLOOR = (0.05, 0.01)  # the sensor's noise floor: range m, bearing rad
+HIGH_FLOOR, HIGH_PROCESS_FLOOR = (0.08, 0.03), 0.01  # above the real noise: the floors bind
 SETTINGS = TrainSettings(n_points=150, restarts=1, max_iter=30, sparse_iter=40, calibration_seconds=0)
 
 MODULE = """
@@ -159,21 +160,37 @@ def test_sensors_of_one_type_share_one_gp_with_their_constants(rover: System, tr
         )
 
 
-def test_no_model_claims_less_noise_than_the_floors(rover: System, trained) -> None:
-    folder, _ = trained
+def test_no_model_claims_less_noise_than_the_floors(rover: System, tmp_path: Path) -> None:
+    """Floors above the sensor's real noise (range 0.05 m, bearing 0.02 rad) and the process
+    noise: every kind's variances sit at or above them, though the models alone claim less."""
+    d = description()
+    for sensor in d["sensors"]:
+        sensor["noise_floor"] = list(HIGH_FLOOR)
+    d["process_noise_floor"] = [HIGH_PROCESS_FLOOR] * 3
+    system = System.from_dict(d)
+    folder = tmp_path / "floored"
+    train_models([drive(system, 1, 1500)], folder, settings=SETTINGS)
     x = np.random.default_rng(0).uniform(-2, 2, size=(50, 3))
     u = np.tile([0.5, 0.1], (50, 1))
-    for kind in available_kinds(rover):
-        pred, obs = load_models(folder, kind)
-        assert np.all(obs.observe(x).var >= np.tile(np.square(FLOOR), len(LANDMARKS)) * (1 - 1e-12)), kind
-        assert np.all(pred.predict(x, u).var >= 1e-6 * (1 - 1e-12)), kind
-    raw = load_user_models(folder / "parametric.json", rover)
-    assert np.all(raw.sensor_types["rb"].noise_var >= np.square(FLOOR))
+    obs_floor, below = np.tile(np.square(HIGH_FLOOR), len(LANDMARKS)), []
+    for kind in available_kinds(system):
+        (raw_pred, raw_obs), (pred, obs) = (
+            load_models(folder, kind, calibrated=False),
+            load_models(folder, kind),
+        )
+        assert np.all(obs.observe(x).var >= obs_floor * (1 - 1e-12)), kind
+        assert np.all(pred.predict(x, u).var >= HIGH_PROCESS_FLOOR**2 * (1 - 1e-12)), kind
+        below.append(np.any(raw_obs.observe(x).var < obs_floor) and np.any(raw_pred.predict(x, u).var < 1e-4))
+    assert sum(below) >= 3, below  # the floors bind: the GP kinds alone claim less
+    raw = load_user_models(folder / "parametric.json", system)
+    assert np.all(raw.sensor_types["rb"].noise_var >= np.square(HIGH_FLOOR))
+    assert np.all(raw.prediction.noise_var >= HIGH_PROCESS_FLOOR**2)
     report = json.loads((folder / "noise.json").read_text())  # training reports noise beside floor
-    assert set(report) == set(available_kinds(rover))
+    assert set(report) == set(available_kinds(system))
     assert set(report["gp"]) == {"prediction", "type-rb"}
-    assert report["gp"]["type-rb"]["bearing"]["floor"] == FLOOR[1]
-    assert report["param"]["type-rb"]["range"]["std"] >= FLOOR[0]
+    assert report["gp"]["type-rb"]["bearing"]["floor"] == HIGH_FLOOR[1]
+    assert report["egp"]["type-rb"]["bearing"]["std"] < HIGH_FLOOR[1]  # what the GP alone claims
+    assert report["param"]["type-rb"]["range"]["std"] >= HIGH_FLOOR[0]
 
 
 def test_user_model_jacobians_wrap_angle_outputs_at_the_cut(rover: System, trained) -> None:

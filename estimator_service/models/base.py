@@ -20,6 +20,9 @@ __all__ = [
     "ModelOutput",
     "ObservationModel",
     "PredictionModel",
+    "controls_for",
+    "sensor_rows",
+    "side_by_side",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -74,6 +77,20 @@ def controls_for(u: FloatArray, m: int) -> FloatArray:
     """Broadcast a control ``(k,)`` or ``(M, k)`` to ``(M, k)``."""
     u = np.asarray(u, dtype=np.float64)
     return np.broadcast_to(u, (m, u.shape[-1])) if u.ndim == 1 else u
+
+
+def sensor_rows(x: FloatArray, constants: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """States ``x (M, n)`` and ``S`` sensors' constants ``(S, c)`` as one batch of rows,
+    sensor by sensor: ``(S M, n)`` and ``(S M, c)`` (a sensor type's model evaluates all its
+    sensors in one call; :func:`side_by_side` puts the results back per state)."""
+    return np.tile(x, (len(constants), 1)), np.repeat(constants, len(x), axis=0)
+
+
+def side_by_side(a: FloatArray, s: int) -> FloatArray:
+    """Per-row results of :func:`sensor_rows`' batch ``(S M, size, ...)`` as ``(M, S size, ...)``:
+    each state's readings of all ``S`` sensors side by side, sensor by sensor."""
+    a = a.reshape(s, -1, *a.shape[1:])
+    return np.moveaxis(a, 0, 1).reshape(a.shape[1], s * a.shape[2], *a.shape[3:])
 
 
 @dataclass(frozen=True)

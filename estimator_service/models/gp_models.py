@@ -8,7 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.gp.base import GPModel
-from estimator_service.models.base import ModelOutput, controls_for
+from estimator_service.models.base import ModelOutput, controls_for, sensor_rows, side_by_side
 from estimator_service.reprs import short_repr
 
 __all__ = ["GPObservationModel", "GPPredictionModel", "SharedGPObservation", "StackedObservationModel"]
@@ -84,17 +84,13 @@ class SharedGPObservation:
         object.__setattr__(self, "obs_dim", s * self.gp.output_dim)
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
-        m, (s, _) = len(x), self.constants.shape
-        q = np.concatenate([np.tile(x, (s, 1)), np.repeat(self.constants, m, axis=0)], axis=1)
-        p = self.gp.predict(q, return_var=var, return_jac=jac)
-
-        def side_by_side(a: FloatArray) -> FloatArray:  # (S * M, size, ...) -> (M, S * size, ...)
-            a = a.reshape(s, m, *a.shape[1:])
-            return np.moveaxis(a, 0, 1).reshape(m, self.obs_dim, *a.shape[3:])
-
+        s = len(self.constants)
+        p = self.gp.predict(
+            np.concatenate(sensor_rows(x, self.constants), axis=1), return_var=var, return_jac=jac
+        )
         v = p.var if p.var is not None else np.zeros_like(p.mean)
-        j = None if p.jac is None else side_by_side(p.jac[:, :, : self.state_dim])
-        return ModelOutput(side_by_side(p.mean), side_by_side(v), j)
+        j = None if p.jac is None else side_by_side(p.jac[:, :, : self.state_dim], s)
+        return ModelOutput(side_by_side(p.mean, s), side_by_side(v, s), j)
 
 
 @dataclass(frozen=True, eq=False)
