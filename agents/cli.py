@@ -159,21 +159,11 @@ def world_kwargs(args: argparse.Namespace) -> dict[str, object]:
     return out
 
 
-#: the commands that need more than the estimator: the extra to install and a module of it
-NEEDS = {
-    "collect": ("sim", "gymnasium"),
-    "train-agent": ("rl", "stable_baselines3"),
-    "eval-agent": ("rl", "stable_baselines3"),
-    "reproduce": ("sim", "gymnasium"),
-    "gap-sweep": ("sim", "gymnasium"),
-}
-
-
 def missing_extra(command: str) -> str | None:
     """The extra ``command`` needs and this install lacks, or None."""
-    extra, module = NEEDS.get(command, (None, None))
-    if module is None:
+    if command not in NEEDS:
         return None
+    extra, module, _ = NEEDS[command]
     try:
         found = importlib.util.find_spec(module) is not None
     except ImportError:
@@ -192,11 +182,7 @@ def build_parser() -> Parser:
     sub.add_parser("serve", help="run the estimator service (see 'gpbf serve --help')", add_help=False)
     sub.add_parser("router", help="run a zenoh router for a fleet (see 'gpbf router --help')", add_help=False)
     add_train_track(sub)
-    builders = {
-        "collect": _add_collect, "train-agent": _add_train_agent, "eval-agent": _add_eval_agent,
-        "reproduce": _add_reproduce, "gap-sweep": _add_gap_sweep,
-    }  # fmt: skip
-    for command, add in builders.items():
+    for command, (_, _, add) in NEEDS.items():
         extra = missing_extra(command)
         if extra is None:
             add(sub)
@@ -305,6 +291,17 @@ def _add_gap_sweep(sub) -> None:
     add_jobs_option(g)
     add_quiet(g)
     g.set_defaults(func=_gap_sweep)
+
+
+#: the commands that need more than the estimator: the extra to install, a module of it, and
+#: the function that adds the command's parser
+NEEDS = {
+    "collect": ("sim", "gymnasium", _add_collect),
+    "train-agent": ("rl", "stable_baselines3", _add_train_agent),
+    "eval-agent": ("rl", "stable_baselines3", _add_eval_agent),
+    "reproduce": ("sim", "gymnasium", _add_reproduce),
+    "gap-sweep": ("sim", "gymnasium", _add_gap_sweep),
+}
 
 
 def main(argv: list[str] | None = None) -> int:
