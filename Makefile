@@ -11,7 +11,7 @@ $(VENV)/bin/python:
 	$(PY) -m venv $(VENV)
 
 $(STAMP): $(VENV)/bin/python pyproject.toml constraints.txt
-	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e ".[all,dev,bench,zoo]"
+	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e ".[all,dev,bench,zoo,ros]"
 	touch $(STAMP)
 
 demo: $(STAMP)

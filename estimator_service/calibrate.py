@@ -171,7 +171,7 @@ def calibrate_noise(
 
 
 def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, rounds: int = MATCH_ROUNDS,
-           max_step: float = MATCH_STEP) -> dict[str, NoiseCalibration]:  # fmt: skip
+           max_step: float = MATCH_STEP, covering: bool = True) -> dict[str, NoiseCalibration]:  # fmt: skip
     """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`."""
     from estimator_service.factory import apply_calibration, load_models
 
@@ -182,7 +182,7 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
         start = read_process_scales(folder).get(kind, np.ones(pred.state_dim))
         scales = read_observation_scales(folder).get(kind)
         block = Block(flight, rows, pred, cam, read_process_ceiling(folder, pred.state_dim))
-        res[kind] = noise_from_blocks([block], start, scales, rounds, max_step)
+        res[kind] = noise_from_blocks([block], start, scales, rounds, max_step, covering)
     write_calibration(
         folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
         {k: v.details for k, v in res.items()}, {k: v.nis_level for k, v in res.items()},
@@ -193,11 +193,15 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
 
 def noise_from_blocks(
     blocks: Sequence[Block], start: FloatArray, obs_scale: FloatArray | None,
-    rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
+    rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP, covering: bool = True,
 ) -> NoiseCalibration:  # fmt: skip
-    """Process scales matched from ``start (n,)`` and the covering factor on the blocks,
-    with the observation scales ``obs_scale (m,)`` the blocks' models carry (or None)."""
+    """Process scales matched from ``start (n,)`` and the covering factor on the blocks
+    (factor 1 without ``covering``: cross-fitting chooses its factor by the held-out
+    log-likelihood instead), with the observation scales ``obs_scale (m,)`` the blocks'
+    models carry (or None)."""
     scale, history = match_scales(blocks, start, rounds=rounds, max_step=max_step)
+    if not covering:
+        return NoiseCalibration(scale, obs_scale, 1.0, {"matching": history})
     curve, level = coverage(blocks, scale)
     factor = covering_factor(curve, len(scale))
     details = {"matching": history, "coverage": curve, "coverage_factor": factor, "nis_level": level}
@@ -211,7 +215,8 @@ def geometric_mean(values: object, axis: int | None = None) -> FloatArray:
 
 def write_calibration(
     folder: Path, process: dict[str, FloatArray], observation: dict[str, FloatArray | None],
-    details: dict[str, dict], nis_levels: dict[str, float], **extra: object,
+    details: dict[str, dict], nis_levels: dict[str, float], adaptive: dict[str, bool] | None = None,
+    **extra: object,
 ) -> None:  # fmt: skip
     """Write per-kind process scales (as a geometric-mean ``noise_scale`` times per-output
     scales), observation scales, the adaptive filters' NIS/dof reference (the kinds whose
@@ -222,18 +227,18 @@ def write_calibration(
     write_noise_scales(
         folder, mean, observation={k: v for k, v in observation.items() if v is not None},
         process={k: v / mean[k] for k, v in process.items()},
-        nis_reference={k: v for k, v in nis_levels.items() if math.isfinite(v) and v > 0},
+        nis_reference={k: v for k, v in nis_levels.items() if math.isfinite(v) and v > 0}, adaptive=adaptive,
         **{NOISE_DETAILS: details}, **extra,
     )  # fmt: skip
 
 
 def calibrate_all(
-    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice
+    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice, covering: bool = True
 ) -> dict[str, NoiseCalibration]:
     """Observation scales, one-step process scales, then their per-output match to the EKF's
-    errors and the 3-sigma coverage factor, all on ``rows`` of ``flight`` (which the models
-    in ``folder`` must not have seen); written to ``folder/calibration.json`` and returned
-    per kind."""
+    errors and (with ``covering``) the 3-sigma coverage factor, all on ``rows`` of
+    ``flight`` (which the models in ``folder`` must not have seen); written to
+    ``folder/calibration.json`` and returned per kind."""
     calibrate_observation(flight, folder, kinds, rows=rows)
     calibrate_process(flight, folder, kinds, rows=rows)
-    return _noise(flight, folder, kinds, rows)
+    return _noise(flight, folder, kinds, rows, covering=covering)

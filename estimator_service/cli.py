@@ -2,8 +2,10 @@
 
 ``python -m estimator_service train|track|serve ...`` runs them without the simulator;
 ``gpbf`` offers the same commands (and the simulator's and agents' ones) with the same
-options. A log is a flight file (``.npz``) or a CSV file described by ``--system``
-(``docs/your-robot.md``).
+options. A log is a flight file (``.npz``), a CSV file of one row per step, a CSV event
+log (``--events``) or a ROS bag (``--topics MAPPING.json``), the last three described by
+``--system`` (``docs/your-robot.md``; event logs and bags are aligned to the steps by
+:func:`estimator_service.events.align`).
 """
 
 from __future__ import annotations
@@ -44,12 +46,50 @@ def _system(args: argparse.Namespace):
     )
 
 
-def run_train(args: argparse.Namespace) -> int:
-    from estimator_service.flight import load_log
-    from estimator_service.training import TrainSettings, available_kinds, train_models
+def _read_log(path: Path, args: argparse.Namespace):
+    """The flight of one log under the command's log options (see the module docstring)."""
+    from estimator_service.flight import FlightError, load_log
 
     system = _system(args)
-    flights = [load_log(p, system) for p in args.logs]
+    if not (args.events or args.topics):
+        return load_log(path, system)
+    from estimator_service.events import align, load_event_csv
+
+    if system is None:
+        raise FlightError(f"{str(path)!r}: an event log or ROS bag needs a system description (--system)")
+    if args.topics:
+        from estimator_service.rosbag import load_rosbag
+
+        log = load_rosbag(path, system, args.topics)
+    else:
+        log = load_event_csv(path, system)
+    flight, report = align(log, control=args.control_rule, control_delay=args.control_delay)
+    if not args.quiet:
+        print(f"{path}: {report}", file=sys.stderr)
+    return flight
+
+
+def add_log_options(p: argparse.ArgumentParser) -> None:
+    """How logs are read: ``--system``, ``--events``, ``--topics``, the control rule and delay."""
+    p.add_argument("--system", type=Path, default=None, help="system description JSON (needed but for .npz)")
+    p.add_argument("--events", action="store_true", help="CSV logs are event logs (t, stream, values...)")
+    p.add_argument(
+        "--topics", type=Path, default=None, help="logs are ROS bags read by this topic mapping JSON"
+    )
+    p.add_argument(
+        "--control-rule", choices=("mean", "hold"), default="mean",
+        help="event logs and bags: a step's control is the mean of the commands acting in it, or the last",
+    )  # fmt: skip
+    p.add_argument(
+        "--control-delay", type=checked_float(0.0, 60.0), default=None,
+        help="event logs and bags: seconds from a command to its effect (default: the description's)",
+    )  # fmt: skip
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from estimator_service.training import TrainSettings, available_kinds, train_models
+
+    flights = [_read_log(p, args) for p in args.logs]
     settings = TrainSettings(
         args.points, args.pseudo, args.restarts, args.max_iter, args.hetero_iterations,
         sparse_iter=args.sparse_iter, hyper_points=args.hyper_points or None,
@@ -76,18 +116,22 @@ def run_train(args: argparse.Namespace) -> int:
         timings = train_models(
             flights, args.out, kinds=kinds, settings=settings, seed=args.seed, on_progress=progress
         )
+    from estimator_service.models.calibration import calibration_choices
+
+    seconds = {k: round(v, 1) for k, v in timings.items()}
     print(
-        json.dumps({"models": str(args.out), "train_seconds": {k: round(v, 1) for k, v in timings.items()}})
+        json.dumps(
+            {"models": str(args.out), "train_seconds": seconds, "calibration": calibration_choices(args.out)}
+        )
     )
     return 0
 
 
 def run_track(args: argparse.Namespace) -> int:
     from estimator_service.factory import build_filter
-    from estimator_service.flight import load_log
     from estimator_service.tracking import track_flight
 
-    flight = load_log(args.log, _system(args))
+    flight = _read_log(args.log, args)
     filt = build_filter(args.filter, args.model, args.models, **filter_options(args))
     with ProgressBar(f"track {args.filter}/{args.model}", len(flight) - 1, enabled=not args.quiet) as bar:
         result = track_flight(filt, flight, rng=np.random.default_rng(args.seed), on_step=bar.update_to)
@@ -111,8 +155,8 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
 
     d = TrainSettings()  # the defaults have one owner
     t = sub.add_parser("train", help="fit every model kind from logs", description=run_train.__doc__)
-    t.add_argument("logs", nargs="+", type=Path, help="flight .npz or CSV log files")
-    t.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
+    t.add_argument("logs", nargs="+", type=Path, help="flight .npz, CSV or event logs, or ROS bags")
+    add_log_options(t)
     t.add_argument(
         "--out", type=Path, default=Path("out/models"), help="model folder to write (replaced whole)"
     )
@@ -152,8 +196,8 @@ def add_train_track(sub: argparse._SubParsersAction) -> None:
     t.set_defaults(func=run_train)
 
     k = sub.add_parser("track", help="run a filter over a log and score it")
-    k.add_argument("log", type=Path, help="flight .npz or CSV log")
-    k.add_argument("--system", type=Path, default=None, help="system description JSON (needed for CSV logs)")
+    k.add_argument("log", type=Path, help="flight .npz, CSV or event log, or ROS bag")
+    add_log_options(k)
     add_filter_options(k)
     k.add_argument("--seed", type=seed, default=0, help="seed of the particle filter")
     k.add_argument(

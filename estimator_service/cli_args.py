@@ -141,8 +141,9 @@ def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = Fa
     p.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL, help="model kind")
     p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")
     p.add_argument(
-        "--adapt", type=checked_float(0.0, 1.0), default=ADAPT_RATE, metavar="RATE",
-        help="EKF/UKF: inflate the process noise while NIS/dof stays above 1 at this rate (0: off)",
+        "--adapt", type=checked_float(0.0, 1.0), default=None, metavar="RATE",
+        help=f"EKF/UKF: inflate the process noise while NIS/dof stays above its calibrated level at this "
+        f"rate (0: off; default {ADAPT_RATE}, or off where the models' calibration chose the plain filter)",
     )  # fmt: skip
 
 
@@ -150,4 +151,4 @@ def filter_options(args: argparse.Namespace) -> dict[str, object]:
     """The filter's own options from :func:`add_filter_options`' arguments."""
     if args.filter == "pf":
         return {"n_particles": args.particles}
-    return {"adapt_rate": args.adapt}
+    return {} if args.adapt is None else {"adapt_rate": args.adapt}

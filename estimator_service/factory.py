@@ -25,6 +25,7 @@ from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.models.calibration import (
     NoiseScaledObservation,
     NoiseScaledPrediction,
+    read_adaptive,
     read_nis_reference,
     read_noise_scales,
     read_observation_scales,
@@ -289,9 +290,13 @@ def build_filter(
 def adaptation_defaults(model_dir: str | os.PathLike[str], model_kind: str) -> dict[str, object]:
     """An adaptive EKF's or UKF's options from the model folder: ``adapt_reference``, the
     calibrated filter's NIS/dof level for ``model_kind`` where ``calibration.json`` has one
-    (:mod:`estimator_service.filters.adaptive`)."""
+    (:mod:`estimator_service.filters.adaptive`), and ``adapt_rate`` 0 where the cross-fitted
+    calibration found the plain filter better on its held-out blocks."""
     level = read_nis_reference(model_dir).get(model_kind)
-    return {} if level is None else {"adapt_reference": level}
+    options: dict[str, object] = {} if level is None else {"adapt_reference": level}
+    if read_adaptive(model_dir).get(model_kind) is False:
+        options["adapt_rate"] = 0.0
+    return options
 
 
 def warm_up(filt: EKF | UKF | PF, system: System) -> None:

@@ -14,10 +14,15 @@ A :class:`Flight` holds, per row (one filter step ``dt`` apart within an episode
 ``exact``      (N, n)       optional: the exact state where a simulator knows it (``state``
                             is then what its measurement system, e.g. simulated motion
                             capture, reported: what models train on, as on a real robot)
+``extra``                   optional :class:`ExtraReadings`: a sensor's second and later
+                            readings within one row (aligned event logs,
+                            :mod:`estimator_service.events`); filters apply them after the
+                            row's first readings, one update each, in time order
 =============  ===========  =================================================================
 
 On disk: one NumPy ``.npz`` (``allow_pickle=False``) with those keys and ``metadata`` as
-a JSON string (format ``gpbf-flight``, version 2, ``exact`` stored when present;
+a JSON string (format ``gpbf-flight``, version 2, ``exact`` and ``extra_row``,
+``extra_z``, ``extra_valid`` stored when present;
 version-1 files of the blimp simulator, which stored ``ellipses (N, C, 5)``, are
 read too), written atomically. Logs from elsewhere come in as CSV (:func:`load_csv`,
 layout in ``docs/your-robot.md``).
@@ -41,6 +46,7 @@ from estimator_service.system import System, SystemError
 
 __all__ = [
     "FLIGHT_FORMAT_VERSION",
+    "ExtraReadings",
     "Flight",
     "FlightError",
     "load_csv",
@@ -60,6 +66,43 @@ class FlightError(ValueError):
 
 
 @dataclass(frozen=True)
+class ExtraReadings:
+    """Readings beyond a sensor's first within one row, in time order.
+
+    Attributes
+    ----------
+    row: (E,) int
+        The flight row each belongs to (non-decreasing).
+    z: (E, m)
+        The values, laid out as the flight's ``z`` (0 outside the sensor's outputs).
+    valid: (E, S) bool
+        The one sensor each reading is of.
+    """
+
+    row: NDArray[np.int64]
+    z: FloatArray
+    valid: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return len(self.row)
+
+    def take(self, keep: NDArray[np.bool_], row: NDArray[np.int64] | None = None) -> ExtraReadings | None:
+        """The readings where ``keep``, with new row numbers ``row`` (all of them) if given;
+        None when none is kept."""
+        if not keep.any():
+            return None
+        rows = self.row[keep] if row is None else row[keep]
+        return ExtraReadings(rows.astype(np.int64), self.z[keep], self.valid[keep])
+
+    def at(self, row: int) -> range:
+        """Indices of the readings of ``row``."""
+        return range(*np.searchsorted(self.row, [row, row + 1]))
+
+
+_EXTRA_KEYS = ("extra_row", "extra_z", "extra_valid")
+
+
+@dataclass(frozen=True)
 class Flight:
     """One recorded run (see the module docstring for the fields)."""
 
@@ -71,6 +114,7 @@ class Flight:
     episode: NDArray[np.int64]
     metadata: dict[str, Any]
     exact: FloatArray | None = None
+    extra: ExtraReadings | None = None
 
     def __post_init__(self) -> None:
         self.check()  # also caches the parsed system description
@@ -129,15 +173,38 @@ class Flight:
             raise FlightError(f"{where}: 'z' has NaN or infinite values where 'valid' is set")
         if n and np.any(np.diff(self.episode) < 0):
             raise FlightError(f"{where}: 'episode' must not decrease")
+        if self.extra is not None:
+            self._check_extra(where, sys_)
+
+    def _check_extra(self, where: str, sys_: System) -> None:
+        e = self.extra
+        k = len(e.row)
+        if np.shape(e.z) != (k, sys_.obs_dim) or np.shape(e.valid) != (k, sys_.n_sensors):
+            raise FlightError(
+                f"{where}: 'extra_z' {np.shape(e.z)} and 'extra_valid' {np.shape(e.valid)} must be "
+                f"({k}, {sys_.obs_dim}) and ({k}, {sys_.n_sensors})"
+            )
+        if k and (e.row.min() < 0 or e.row.max() >= len(self.t) or np.any(np.diff(e.row) < 0)):
+            raise FlightError(f"{where}: 'extra_row' must be non-decreasing rows of the flight")
+        if k and not np.all(e.valid.sum(axis=1) == 1):
+            raise FlightError(f"{where}: each extra reading must be of exactly one sensor")
+        if not np.all(np.isfinite(e.z[sys_.expand_valid(e.valid)])):
+            raise FlightError(f"{where}: 'extra_z' has NaN or infinite values where 'extra_valid' is set")
 
     def expand_valid(self) -> NDArray[np.bool_]:
         """Per-output validity ``(N, m)``."""
         return self.system.expand_valid(self.valid)
 
     def readings(self, sensor: int) -> tuple[FloatArray, FloatArray]:
-        """States ``(T, n)`` and values ``(T, size)`` of the rows where ``sensor`` delivered."""
-        rows = self.valid[:, sensor]
-        return self.state[rows], self.z[rows][:, self.system.sensor_slice(sensor)]
+        """States ``(T, n)`` and values ``(T, size)`` of every reading of ``sensor`` (a row's
+        first, then the extra readings), each with the state of its row."""
+        rows = np.flatnonzero(self.valid[:, sensor])
+        z = self.z[rows]
+        if self.extra is not None:
+            more = self.extra.valid[:, sensor]
+            rows = np.concatenate([rows, self.extra.row[more]])
+            z = np.concatenate([z, self.extra.z[more]])
+        return self.state[rows], z[:, self.system.sensor_slice(sensor)]
 
     def transition_rows(self) -> NDArray[np.intp]:
         """Rows ``k`` whose successor ``k + 1`` belongs to the same episode."""
@@ -150,21 +217,31 @@ class Flight:
 
     def select(self, rows: NDArray[np.intp]) -> Flight:
         """The rows ``rows`` (sorted) as a new flight."""
+        rows = np.asarray(rows, dtype=np.intp)
         exact = None if self.exact is None else self.exact[rows]
-        return Flight(*(getattr(self, k)[rows] for k in _KEYS), self.metadata, exact)
+        extra = None
+        if self.extra is not None and len(rows):
+            at = np.minimum(np.searchsorted(rows, self.extra.row), len(rows) - 1)
+            extra = self.extra.take(rows[at] == self.extra.row, at.astype(np.int64))
+        return Flight(*(getattr(self, k)[rows] for k in _KEYS), self.metadata, exact, extra)
 
     def without_readings(self, rows: slice) -> Flight:
         """This flight with no sensor readings in ``rows`` (states, controls kept)."""
         valid = self.valid.copy()
         valid[rows] = False
-        return replace(self, valid=valid)
+        extra = self.extra
+        if extra is not None:
+            start, stop, _ = rows.indices(len(self))
+            extra = extra.take((extra.row < start) | (extra.row >= stop))
+        return replace(self, valid=valid, extra=extra)
 
 
 def make_flight(
-    system: System, t, state, control, z, valid, episode=None, exact=None, **metadata: Any
+    system: System, t, state, control, z, valid, episode=None, exact=None,
+    extra: ExtraReadings | None = None, **metadata: Any,
 ) -> Flight:  # fmt: skip
     """A :class:`Flight` from arrays (``valid`` per sensor ``(N, S)``; ``episode`` default 0;
-    ``exact`` the simulator's exact states, if any)."""
+    ``exact`` the simulator's exact states, if any; ``extra`` later readings within a row)."""
     t = np.asarray(t, dtype=np.float64)
     ep = np.zeros(len(t), np.int64) if episode is None else np.asarray(episode, dtype=np.int64)
     meta = {"format": FLIGHT_FORMAT, "version": FLIGHT_FORMAT_VERSION, **metadata, "system": system.to_dict()}
@@ -179,6 +256,7 @@ def make_flight(
         ep,
         meta,
         None if exact is None else np.asarray(exact, float),
+        extra,
     )
 
 
@@ -188,6 +266,8 @@ def save_flight(flight: Flight, path: str | os.PathLike[str]) -> Path:
     arrays = {k: getattr(flight, k) for k in _KEYS}
     if flight.exact is not None:
         arrays["exact"] = flight.exact
+    if flight.extra is not None:
+        arrays.update(zip(_EXTRA_KEYS, (flight.extra.row, flight.extra.z, flight.extra.valid), strict=True))
     return atomic_savez(path, **arrays, metadata=np.array(json.dumps(meta)))
 
 
@@ -224,7 +304,20 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
         np.asarray(data["episode"]).astype(np.int64),
         meta,
         np.asarray(data["exact"], dtype=np.float64) if "exact" in data else None,
+        _extra_from(data, where),
     )
+
+
+def _extra_from(data: dict, where: str) -> ExtraReadings | None:
+    have = [k for k in _EXTRA_KEYS if k in data]
+    if not have:
+        return None
+    if len(have) != len(_EXTRA_KEYS):
+        raise FlightError(f"{where}: has {have} but not all of {list(_EXTRA_KEYS)}")
+    row, z, valid = (data[k] for k in _EXTRA_KEYS)
+    if row.ndim != 1 or z.ndim != 2 or valid.ndim != 2:
+        raise FlightError(f"{where}: 'extra_row' must be 1-D, 'extra_z' and 'extra_valid' 2-D")
+    return ExtraReadings(row.astype(np.int64), z.astype(np.float64), valid.astype(bool))
 
 
 def _from_version_1(data: dict, meta: dict, where: str) -> tuple[dict, dict]:

@@ -29,14 +29,22 @@ from estimator_service.tracking import TrackResult
 __all__ = [
     "COVERAGE_FACTORS",
     "GAUSSIAN_WITHIN3",
+    "LIKELIHOOD_FACTORS",
     "MATCH_ROUNDS",
     "MATCH_STEP",
     "MATCH_TOLERANCE",
     "MIN_LEVERAGE",
+    "PROCESS_FACTORS",
+    "RMS_TOLERANCE",
     "Block",
+    "HeldOut",
+    "LikelihoodChoice",
+    "adaptation_helps",
+    "choose_by_likelihood",
     "coverage",
     "coverage_curve",
     "covering_factor",
+    "held_out",
     "leverage",
     "match_scales",
     "nis_level",
@@ -51,36 +59,52 @@ MATCH_TOLERANCE = 0.1  # matching stops once every output's e^2 / P is within 10
 MIN_LEVERAGE = 0.25  # the weakest response of e^2 / P to its own scale that is followed
 #: factors on the matched process and observation noise tried, smallest first
 COVERAGE_FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
+#: factors on the matched noise among which the held-out log-likelihood chooses
+LIKELIHOOD_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0)
+#: factors on the models' own process noise alone (errors that persist over many steps)
+PROCESS_FACTORS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+#: a calibration raising the held-out RMS by more than this fraction is not applied
+RMS_TOLERANCE = 0.02
 
 
 @dataclass(frozen=True)
 class Block:
     """Rows ``rows`` of ``flight`` and models (calibrated observation noise, raw prediction
-    noise) that never saw them, with the models' process-variance ceiling ``(n,)`` (None:
-    none), which applies to every scale tried on the block as it will in the filter."""
+    noise) that never saw them, with the models' process-variance ceiling ``(n,)`` and the
+    system's process and observation noise floors (variances ``(n,)``, ``(m,)``; None:
+    none), which apply to every scale tried on the block as they will in the filter."""
 
     flight: Flight
     rows: slice
     prediction: PredictionModel
     observation: ObservationModel
     ceiling: FloatArray | None = None
+    process_floor: FloatArray | None = None
+    obs_floor: FloatArray | None = None
 
 
-def track_block(block: Block, scale: FloatArray, factor: float = 1.0) -> TrackResult | None:
-    """The plain EKF over the block (the adaptive one would hide what is calibrated here),
-    its process noise scaled by ``scale * factor (n,)`` (capped at the block's ceiling) and
-    its observation noise by ``factor``; None when the filter's covariance blew up (not
-    finite, or at some step no longer factorable, which the filter flags as divergence and
-    carries on), which the callers count as a block the scales do not cover."""
+def track_block(
+    block: Block, scale: FloatArray, factor: float = 1.0, obs_factor: float | None = None,
+    adapt_reference: float | None = None,
+) -> TrackResult | None:  # fmt: skip
+    """The plain EKF over the block (the adaptive one would hide what is calibrated here;
+    with ``adapt_reference`` the adaptive one referred to that NIS/dof level), its process
+    noise scaled by ``scale * factor (n,)`` (capped at the block's ceiling) and its
+    observation noise by ``obs_factor`` (default ``factor``); None when the filter's
+    covariance blew up (not finite, or at some step no longer factorable, which the filter
+    flags as divergence and carries on), which the callers count as a block the scales do
+    not cover."""
     from estimator_service.factory import make_filter
     from estimator_service.models.calibration import NoiseScaledObservation, NoiseScaledPrediction
     from estimator_service.tracking import track_flight
 
     obs = block.observation
-    if factor != 1.0:
-        obs = NoiseScaledObservation(obs, np.full(obs.obs_dim, factor))
-    pred = NoiseScaledPrediction(block.prediction, scale * factor, block.ceiling)
-    filt = make_filter("ekf", pred, obs, system=block.flight.system, adapt_rate=0.0)
+    obs_factor = factor if obs_factor is None else obs_factor
+    if obs_factor != 1.0 or block.obs_floor is not None:
+        obs = NoiseScaledObservation(obs, np.full(obs.obs_dim, obs_factor), block.obs_floor)
+    pred = NoiseScaledPrediction(block.prediction, scale * factor, block.ceiling, block.process_floor)
+    adapt = {"adapt_rate": 0.0} if adapt_reference is None else {"adapt_reference": adapt_reference}
+    filt = make_filter("ekf", pred, obs, system=block.flight.system, **adapt)
     try:
         with np.errstate(all="ignore"):
             r = track_flight(filt, block.flight, rows=block.rows)
@@ -184,3 +208,99 @@ def covering_factor(curve: Sequence[float], state_dim: int) -> float:
     spread hardly follows their process noise) widen too."""
     hits = np.flatnonzero(np.asarray(curve) >= GAUSSIAN_WITHIN3**state_dim)
     return COVERAGE_FACTORS[int(hits[0]) if hits.size else -1]
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """The plain EKF's scores pooled over held-out blocks: mean log-likelihood of the truth
+    per step (``-inf`` when a block's covariance blew up), aggregate RMS (the mean of the
+    system's group RMS values), mean NIS/dof, and per state the fraction of steps within 1,
+    2 and 3 standard deviations ``coverage[k - 1] (n,)``."""
+
+    mll: float
+    rms: float
+    nis_level: float
+    coverage: tuple[tuple[float, ...], ...] = ()
+
+    def as_dict(self) -> dict:
+        return {"mll": self.mll, "rms": self.rms, "nis_level": self.nis_level,
+                "coverage": [list(c) for c in self.coverage]}  # fmt: skip
+
+
+def held_out(
+    blocks: Sequence[Block], scale: FloatArray, factor: float = 1.0, obs_factor: float | None = None,
+    adapt_reference: float | None = None,
+) -> HeldOut:  # fmt: skip
+    """:class:`HeldOut` of :func:`track_block` over ``blocks`` at ``scale * factor`` (and
+    the observation noise times ``obs_factor``, default ``factor``; the adaptive EKF with
+    ``adapt_reference``)."""
+    from estimator_service.tracking import aggregate_rms, coverage_by_sigma, group_rms
+
+    runs = [track_block(b, scale, factor, obs_factor, adapt_reference) for b in blocks]
+    if any(r is None for r in runs) or not runs:
+        return HeldOut(-math.inf, math.inf, math.nan)
+    steps = np.array([len(r.error) for r in runs])
+    mll = float(np.sum([r.scores()["mll"] * k for r, k in zip(runs, steps, strict=True)]) / steps.sum())
+    err = np.concatenate([r.error for r in runs])
+    groups = blocks[0].flight.system.groups
+    by_sigma = coverage_by_sigma(err, np.concatenate([r.cov for r in runs]))
+    cover = tuple(tuple(c.round(4).tolist()) for c in by_sigma.values())
+    return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover)
+
+
+@dataclass(frozen=True)
+class LikelihoodChoice:
+    """The calibration with the highest held-out log-likelihood among those that score
+    above the uncalibrated models and raise the RMS by at most :data:`RMS_TOLERANCE`: a
+    factor on the matched process and observation scales (``family`` "matched") or on the
+    models' own process noise alone ("process"); ``applied`` False when none qualifies
+    (``reason`` says why)."""
+
+    applied: bool
+    family: str
+    factor: float
+    chosen: HeldOut
+    uncalibrated: HeldOut
+    curve: dict[str, float]
+    reason: str
+
+    def details(self) -> dict:
+        return {"applied": self.applied, "family": self.family, "factor": self.factor, "reason": self.reason,
+                "chosen": self.chosen.as_dict(), "uncalibrated": self.uncalibrated.as_dict(),
+                "mll_by_factor": self.curve}  # fmt: skip
+
+
+def choose_by_likelihood(
+    calibrated: Sequence[Block], raw: Sequence[Block], scale: FloatArray
+) -> LikelihoodChoice:
+    """Among :data:`LIKELIHOOD_FACTORS` on the process ``scale (n,)`` and the observation
+    scales that the ``calibrated`` blocks carry, and :data:`PROCESS_FACTORS` on the ``raw``
+    blocks' own process noise alone, the calibration with the highest held-out
+    log-likelihood of the truth that beats the raw (uncalibrated) models' and raises their
+    RMS by at most :data:`RMS_TOLERANCE`."""
+    ones = np.ones_like(scale)
+    base = held_out(raw, ones)
+    scored = {("matched", f): held_out(calibrated, scale, f) for f in LIKELIHOOD_FACTORS}
+    scored.update({("process", f): held_out(raw, ones, f, 1.0) for f in PROCESS_FACTORS})
+    fair = [k for k, v in scored.items() if v.mll > base.mll and v.rms <= base.rms * (1 + RMS_TOLERANCE)]
+    best = max(fair or scored, key=lambda k: scored[k].mll)
+    top = scored[best]
+    if fair:
+        reason = "applied"
+    elif not top.mll > base.mll:
+        reason = f"held-out log-likelihood {top.mll:.4g} not above the uncalibrated {base.mll:.4g}"
+    else:
+        reason = (f"every calibration scoring a higher held-out log-likelihood raised the RMS more than "
+                  f"{RMS_TOLERANCE:.0%} (best: {top.rms:.4g} against {base.rms:.4g})")  # fmt: skip
+    curve = {f"{family} x{f:g}": v.mll for (family, f), v in scored.items()}
+    return LikelihoodChoice(bool(fair), best[0], best[1], top, base, curve, reason)
+
+
+def adaptation_helps(blocks: Sequence[Block], scale: FloatArray, factor: float, obs_factor: float,
+                     plain: HeldOut) -> tuple[bool, HeldOut]:  # fmt: skip
+    """Whether the adaptive EKF, referred to ``plain``'s NIS/dof level, scores a higher
+    held-out log-likelihood than the ``plain`` EKF at the same noise without raising its RMS
+    by more than :data:`RMS_TOLERANCE`; and its scores."""
+    level = plain.nis_level if math.isfinite(plain.nis_level) and plain.nis_level > 0 else 1.0
+    adaptive = held_out(blocks, scale, factor, obs_factor, adapt_reference=level)
+    return adaptive.mll > plain.mll and adaptive.rms <= plain.rms * (1 + RMS_TOLERANCE), adaptive

@@ -46,6 +46,8 @@ FloatArray = NDArray[np.float64]
 SYSTEM_FORMAT = "gpbf-system"
 SYSTEM_VERSION = 1
 
+MAX_CONTROL_DELAY = 60.0  # seconds: the longest command-to-effect delay a description may declare
+
 
 class SystemError(ValueError):
     """A system description is malformed, or data does not fit it."""
@@ -325,6 +327,10 @@ class System:
     process_noise_floor
         Per state component, the least process-noise standard deviation per step any
         prediction model may claim; empty: no floor.
+    control_delay
+        Seconds from a command to its effect (``[0, 60]``): aligning an event log
+        (:func:`estimator_service.events.align`) and a service session taking controls at
+        their own times act on a command that much later.
 
     With ``prediction_model`` and a parametric model for every sensor's type the system has
     the ``param``, ``egp`` and ``hetgp`` kinds, as the blimp has with ``parametric="blimp"``
@@ -346,6 +352,7 @@ class System:
     prediction_model: ModelSpec | None = None
     sensor_types: tuple[SensorType, ...] = ()
     process_noise_floor: tuple[float, ...] = ()
+    control_delay: float = 0.0
     _slices: tuple[slice, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -383,6 +390,15 @@ class System:
             raise SystemError(f"{where}: 'state', 'controls' and 'sensors' must be non-empty")
         if not (math.isfinite(self.dt) and self.dt > 0):
             raise SystemError(f"{where}: 'dt' must be a finite time > 0, got {self.dt}")
+        delay = self.control_delay
+        if (
+            isinstance(delay, bool)
+            or not isinstance(delay, int | float)
+            or not 0 <= delay <= MAX_CONTROL_DELAY
+        ):
+            raise SystemError(
+                f"{where}: 'control_delay' must be seconds in [0, {MAX_CONTROL_DELAY:g}], got {delay!r}"
+            )
         if len({s.name for s in self.sensors}) != len(self.sensors):
             raise SystemError(f"{where}: sensor names must be unique")
         for key in ("state_periods", "prior_mean", "prior_std"):
@@ -527,6 +543,7 @@ class System:
             "prediction_model": None if self.prediction_model is None else self.prediction_model.to_dict(),
             "sensor_types": [t.to_dict() for t in self.sensor_types],
             "process_noise_floor": list(self.process_noise_floor),
+            "control_delay": self.control_delay,
         }
 
     def to_json(self) -> str:
@@ -560,6 +577,7 @@ class System:
                 tuple(d.get("state_periods") or ()), None if circle is None else tuple(circle), groups,
                 tuple(d.get("prior_mean") or ()), tuple(d.get("prior_std") or ()), d.get("parametric"),
                 disturbed, prediction, types, tuple(d.get("process_noise_floor") or ()),
+                d.get("control_delay", 0.0),
             )  # fmt: skip
         except SystemError as exc:
             raise SystemError(f"{where}: {exc}") from None

@@ -23,9 +23,11 @@ from estimator_service.flight import Flight
 from estimator_service.system import Group, System
 
 __all__ = [
+    "GAUSSIAN_COVERAGE",
     "GROUPS",
     "TrackResult",
     "aggregate_rms",
+    "coverage_by_sigma",
     "group_mean_norm",
     "group_rms",
     "mean_sd",
@@ -153,8 +155,10 @@ def track_flight(
     t0 = time.perf_counter()
     for k in range(n - 1):
         belief, info = filt.step(belief, fl.control[k], fl.z[k + 1], valid_all[k + 1], rng)
-        g = filt.gaussian(belief)
         info = info if isinstance(info, StepInfo) else StepInfo()
+        if fl.extra is not None:
+            belief, info = _extra_updates(filt, belief, info, fl, k + 1, rng)
+        g = filt.gaussian(belief)
         means.append(g.mean)
         covs.append(g.cov)
         nis.append(info.nis)
@@ -176,6 +180,19 @@ def track_flight(
     )
 
 
+def _extra_updates(filt, belief, info: StepInfo, fl: Flight, row: int, rng: np.random.Generator):
+    """Update ``belief`` with the row's extra readings one after another (a sensor's second
+    and later readings within the step, :class:`~estimator_service.flight.ExtraReadings`);
+    the step's NIS and degrees of freedom add up over the updates."""
+    extra = fl.extra
+    for i in extra.at(row):
+        belief, more = filt.update(belief, extra.z[i], fl.system.expand_valid(extra.valid[i]), rng)
+        if more.dof:
+            nis = more.nis if not info.dof else info.nis + more.nis
+            info = StepInfo(nis, info.dof + more.dof, info.diverged or more.diverged)
+    return belief, info
+
+
 def _default_init_std(flight: Flight) -> FloatArray:
     if flight.system.name == "blimp":
         return np.repeat([0.05, 0.035, 0.05, 0.035], 3)
@@ -185,8 +202,10 @@ def _default_init_std(flight: Flight) -> FloatArray:
 def score(r: TrackResult) -> dict[str, float]:
     """RMS errors per state group (paper units), mean log-likelihood of the truth,
     average NEES and NIS/dof with the 95% bands a consistent filter's averages fall in
-    (``nees_lo``/``nees_hi``, ``nis_lo``/``nis_hi``), the fraction of steps outside the
-    3-sigma ellipsoid, the fractions with the truth within 3 sigma on every dimension
+    (``nees_lo``/``nees_hi``, ``nis_lo``/``nis_hi``), NEES per state dimension
+    (``nees_per_dim``, 1 if consistent), the worst and best dimension's coverage within 1, 2
+    and 3 sigma (``coverage<k>_min``/``_max``; Gaussian 0.683, 0.954, 0.997), the fraction
+    of steps outside the 3-sigma ellipsoid, the fractions with the truth within 3 sigma on every dimension
     (``within3``) and on every dimension of each group (``within3_<group>``), and a
     failure flag; with the simulator's exact states also the RMS errors against them
     (``exact_<group>``).
@@ -218,6 +237,9 @@ def score(r: TrackResult) -> dict[str, float]:
     outside = float(np.mean(nees > chi2.ppf(0.9973, n)))
     out["outside_3sigma"] = outside
     out["within3"] = within_3sigma(e, r.cov)
+    out["nees_per_dim"] = out["nees"] / n
+    for k, cover in coverage_by_sigma(e, r.cov).items():  # per dimension: the worst and the best
+        out[f"coverage{k}_min"], out[f"coverage{k}_max"] = float(cover.min()), float(cover.max())
     for g in _blimp_groups() if r.system is None else r.system.groups:
         cols = list(g.indices)
         out[f"within3_{g.name}"] = within_3sigma(e[:, cols], r.cov[:, cols][:, :, cols])
@@ -225,6 +247,18 @@ def score(r: TrackResult) -> dict[str, float]:
     out["step_ms"] = r.step_s * 1e3
     out["diverged_steps"] = float(np.sum(r.diverged))
     return out
+
+
+#: per-dimension coverage of a Gaussian belief within 1, 2 and 3 standard deviations
+GAUSSIAN_COVERAGE = {1: 0.6827, 2: 0.9545, 3: 0.9973}
+
+
+def coverage_by_sigma(error: FloatArray, cov: FloatArray) -> dict[int, FloatArray]:
+    """``{k: (n,)}`` for k = 1, 2, 3: per dimension, the fraction of steps whose error
+    ``(T, n)`` lies within ``k`` standard deviations of the belief ``cov (T, n, n)``
+    (a calibrated Gaussian belief: :data:`GAUSSIAN_COVERAGE`)."""
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    return {k: np.mean(np.abs(error) <= k * sd, axis=0) for k in GAUSSIAN_COVERAGE}
 
 
 def within_3sigma(error: FloatArray, cov: FloatArray) -> float:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,7 @@ from estimator_service.gp import (
     save_gp,
 )
 from estimator_service.models.calibration import write_process_ceiling
+from estimator_service.preflight import PreflightWarning, preflight
 from estimator_service.store import writing
 from estimator_service.system import Sensor, System, wrap_columns
 from estimator_service.user_models import (
@@ -203,14 +205,16 @@ def train_models(
     """
     kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds
     system = _check_flights(flights, kinds or ())
+    folds = calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds)
+    for message in preflight(flights, system, folds):
+        warnings.warn(message, PreflightWarning, stacklevel=2)
     with writing(out_dir, system) as out:
-        return _train_into(out, flights, system, kinds, settings, seed, on_progress, exclude)
+        return _train_into(out, flights, system, kinds, settings, seed, on_progress, exclude, folds)
 
 
 def _train_into(out: Path, flights, system: System, kinds, settings: TrainSettings, seed: int,
-                on_progress, exclude) -> dict[str, float]:  # fmt: skip
+                on_progress, exclude, folds) -> dict[str, float]:  # fmt: skip
     timings = _fit_models(out, flights, system, kinds, settings, seed, on_progress, exclude)
-    folds = calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds)
     if folds:
         t0 = time.perf_counter()
 

@@ -61,3 +61,22 @@ def test_benchmark_quick_mode_prints_json_last(script: str) -> None:
     if script != "model_swap.py":  # every benchmark measures this machine's limits in its own run
         assert {"dgemm_gflops", "read_gbs"} <= set(last)
     assert all(isinstance(last[k], (int, float)) and math.isfinite(last[k]) for k in EXPECTED[script])
+
+
+def test_the_real_robot_experiment_runs_quick_and_reports(tmp_path: Path) -> None:
+    """docs/results/real_mrclam/experiment.py --quick: the committed event logs align, the
+    user's models train (with the cross-fitted calibration), every judged figure is in
+    results.json and on the last line, and the report names them."""
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "results" / "real_mrclam" / "experiment.py"), "--quick",
+         "--out", str(tmp_path)],
+        check=True, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    last = json.loads(out.stdout.strip().splitlines()[-1])
+    judged = {"egp_ekf_rms_ratio_to_textbook", "egp_ekf_nees_ratio", "egp_ekf_ms_per_step"}
+    assert judged <= set(last) and all(math.isfinite(last[k]) for k in judged)
+    result = json.loads((tmp_path / "results.json").read_text())
+    assert result["quick"] and result["control_delay_s"] in (0.15, 0.2, 0.25)
+    assert set(result["calibration"]) == {"param", "egp"}
+    report = (tmp_path / "report.md").read_text()
+    assert all(f"`{k}`" in report for k in judged) and "textbook ekf" in report

@@ -22,9 +22,12 @@ def test_the_walk_through_runs_as_written(tmp_path: Path) -> None:
         "python",
         "sh",
         "sh",
+        "",
+        "sh",
     ]
+    real = str(ROOT / "docs" / "results" / "real_mrclam")
     try:
-        run_blocks(PAGE, tmp_path, {"7450": str(free_port())})
+        run_blocks(PAGE, tmp_path, {"7450": str(free_port()), "docs/results/real_mrclam": real})
     finally:
         pid = tmp_path / "serve.pid"
         if pid.exists():
@@ -34,6 +37,7 @@ def test_the_walk_through_runs_as_written(tmp_path: Path) -> None:
                 pass
     assert (tmp_path / "rover_models" / "manifest.json").exists()
     assert (tmp_path / "rover_own" / "parametric.json").exists()
+    assert (tmp_path / "mrclam_models" / "observation_egp_type-landmark.npz").exists()
     assert "ready" in (tmp_path / "serve.log").read_text()
 
 

@@ -51,12 +51,15 @@ from estimator_service.models.base import ModelOutput, ObservationModel, Predict
 from estimator_service.reprs import short_repr
 
 __all__ = [
+    "ADAPTIVE",
     "CALIBRATION_FILE",
     "CEILING_FACTOR",
     "NIS_REFERENCE",
     "PROCESS_CEILING",
     "NoiseScaledObservation",
     "NoiseScaledPrediction",
+    "calibration_choices",
+    "read_adaptive",
     "read_details",
     "read_nis_reference",
     "read_noise_scales",
@@ -71,6 +74,7 @@ FloatArray = NDArray[np.float64]
 CALIBRATION_FILE = "calibration.json"
 PROCESS_CEILING = "process_variance_ceiling"  # calibration.json key: (n,) variances
 NIS_REFERENCE = "nis_reference"  # calibration.json key: {kind: the calibrated EKF's mean NIS/dof}
+ADAPTIVE = "adaptive"  # calibration.json key: {kind: whether the held-out blocks chose the adaptive filter}
 CEILING_FACTOR = 10.0  # the ceiling in units of each state output's variance in training
 
 
@@ -216,9 +220,32 @@ def read_nis_reference(folder: str | os.PathLike[str]) -> dict[str, float]:
     return {k: float(v) for k, v in ref.items()}
 
 
+def read_adaptive(folder: str | os.PathLike[str]) -> dict[str, bool]:
+    """``{model kind: whether its EKF and UKF adapt their process noise}`` as the cross-fitted
+    calibration chose by held-out log-likelihood; empty where it did not choose (the
+    filters' default then holds)."""
+    flags = _read(folder).get(ADAPTIVE, {})
+    if not (isinstance(flags, dict) and all(isinstance(v, bool) for v in flags.values())):
+        raise ValueError(f"{CALIBRATION_FILE}: '{ADAPTIVE}' must be {{kind: true or false}}")
+    return dict(flags)
+
+
 def read_details(folder: str | os.PathLike[str]) -> dict:
     """The ``details`` section of ``folder/calibration.json`` (what each calibration measured)."""
     return _read(folder).get("details", {})
+
+
+def calibration_choices(folder: str | os.PathLike[str]) -> dict[str, dict]:
+    """Per kind, whether its cross-fitted calibration was applied, its factor and the held-out
+    mean log-likelihood with and without it (empty without a cross-fitted calibration)."""
+    out = {}
+    for kind, d in read_details(folder).get("noise", {}).items():
+        c = d.get("likelihood") if isinstance(d, dict) else None
+        if c:
+            mll = (round(c["chosen"]["mll"], 4), round(c["uncalibrated"]["mll"], 4))
+            keep = {k: c[k] for k in ("applied", "family", "factor", "reason")}
+            out[kind] = {**keep, "heldout_mll": mll[0], "uncalibrated_mll": mll[1]}
+    return out
 
 
 def read_process_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]:
@@ -261,6 +288,7 @@ def write_noise_scales(
     observation: dict[str, FloatArray] | None = None,
     process: dict[str, FloatArray] | None = None,
     nis_reference: dict[str, float] | None = None,
+    adaptive: dict[str, bool] | None = None,
     **details: object,
 ) -> Path:
     """Merge process-noise ``scales``, per-output ``observation`` and ``process`` scales and
@@ -281,6 +309,8 @@ def write_noise_scales(
     body = {**old, "noise_scale": merged, **vectors, "details": {**old.get("details", {}), **details}}
     if levels:
         body[NIS_REFERENCE] = levels
+    if adaptive:
+        body[ADAPTIVE] = {**old.get(ADAPTIVE, {}), **{k: bool(v) for k, v in adaptive.items()}}
     return atomic_write_text(path, json.dumps(body, indent=2, default=_plain))
 
 

@@ -27,7 +27,6 @@ import zenoh
 
 from estimator_service.cli_args import Parser, add_filter_options, checked_int
 from estimator_service.factory import adaptation_defaults, load_models, make_filter, warm_up
-from estimator_service.filters.adaptive import ADAPT_RATE
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
 from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
@@ -51,7 +50,7 @@ class ServiceConfig:
     connect: tuple[str, ...] = ()
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
-    adapt_rate: float = ADAPT_RATE
+    adapt_rate: float | None = None  # None: the model folder's choice (factory.adaptation_defaults)
     workers: int = 2
     limits: Limits = field(default_factory=Limits)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
@@ -97,9 +96,10 @@ class EstimatorService:
                 if model not in self._models:
                     self._models[model] = load_models(self.config.model_dir, model)
                 opts: dict[str, object] = {"n_particles": self.config.n_particles}
-                if filter_name != "pf":  # the configured rate, 0 included (off)
+                if filter_name != "pf":  # the configured rate, 0 included (off), else the folder's
                     opts = adaptation_defaults(self.config.model_dir, model)
-                    opts["adapt_rate"] = self.config.adapt_rate
+                    if self.config.adapt_rate is not None:
+                        opts["adapt_rate"] = self.config.adapt_rate
                 filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
                 warm_up(filt, self.system)  # caches now, not in a blimp's first step
                 self._filters[key] = filt

@@ -297,8 +297,9 @@ class Session:
         belief = self._belief
         dt = self.settings.system.dt
         n = 0 if self.t is None else round((c.t - self.t) / dt)
+        delay = self.settings.system.control_delay  # a command acts that long after it is sent
         for i in range(n):  # predict to the frame's time with the controls then in force
-            belief = self._predict(belief, self._control_at(self.t + i * dt))
+            belief = self._predict(belief, self._control_at(self.t + i * dt - delay))
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
         belief, info = self._gate(*self._update(belief, z, valid), belief)
         return self._commit(belief, info, c.seq, c.t, t0)
