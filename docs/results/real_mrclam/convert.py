@@ -130,8 +130,9 @@ def main() -> None:
     (args.out / "mrclam.json").write_text(json.dumps(description(marks), indent=1) + "\n")
     for robot in args.robots:
         text, summary = event_lines(args.raw, robot, marks)
-        with gzip.open(args.out / "data" / f"robot{robot}.events.csv.gz", "wt", compresslevel=9) as fh:
-            fh.write(text)
+        path = args.out / "data" / f"robot{robot}.events.csv.gz"
+        with open(path, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=9, mtime=0) as fh:
+            fh.write(text.encode("utf-8"))  # mtime 0: the same data gives the same bytes
         print(json.dumps(summary))
 
 
