@@ -73,8 +73,13 @@ class Stream:
     @classmethod
     def of(cls, t, values, width: int, name: str) -> Stream:
         """A checked stream; :class:`FlightError` names ``name`` and the problem."""
-        t = np.asarray(t, dtype=np.float64).reshape(-1)
-        v = np.asarray(values, dtype=np.float64).reshape(len(t), -1) if len(t) else np.zeros((0, width))
+        try:
+            t = np.asarray(t, dtype=np.float64).reshape(-1)
+            v = np.asarray(values, dtype=np.float64).reshape(len(t), -1) if len(t) else np.zeros((0, width))
+        except (TypeError, ValueError) as exc:
+            raise FlightError(
+                f"stream {name!r}: times (N,) and values (N, {width}) of numbers expected ({exc})"
+            ) from None
         if v.shape[1] != width:
             raise FlightError(f"stream {name!r}: {v.shape[1]} values per sample, expected {width}")
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v))):

@@ -113,6 +113,11 @@ def test_event_csv_reader_and_its_errors(tmp_path: Path) -> None:
         load_event_csv(path, TOY)
     with pytest.raises(FlightError, match="control_delay must be >= 0"):
         align(_worked_log(), control_delay=-0.1)
+    with pytest.raises(FlightError, match=r"stream 'beacon': times \(N,\) and values \(N, 1\)"):
+        EventLog.from_streams(TOY, {"state": ([0, 1], [[0, 0], [1, 1]]), "control": ([0], [[1]]),
+                                    "beacon": ([0, 1, 2], [[1], [2]])})  # fmt: skip
+    with pytest.raises(FlightError, match=r"unknown stream\(s\) \['wheel'\]"):
+        EventLog.from_streams(TOY, {"state": ([0], [[0, 0]]), "control": ([0], [[1]]), "wheel": ([0], [[1]])})
 
 
 # A linear-Gaussian robot (the filter tests' A, B, Q, H, R): extra readings within a step
