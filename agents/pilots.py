@@ -17,15 +17,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator_service.angles import wrap_angle
+
 __all__ = ["PILOTS", "RandomExcitationPilot", "ScriptedPilot", "WaypointPilot", "make_pilot"]
 
 Action = NDArray[np.float32]
 ROOM = (10.0, 6.0, 4.0)
 MARGIN = 1.6  # metres from a wall at which pilots turn back to the centre
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)
@@ -55,7 +53,7 @@ class WaypointPilot:
     def act(self, state: NDArray[np.float64], target: NDArray[np.float64]) -> Action:
         """Normalised action ``(3,)`` that steers ``state (12,)`` towards ``target (3,)``."""
         dx, dy, dz = target[:3] - state[:3]
-        yaw_err = _wrap(state[5] - math.atan2(dy, dx))
+        yaw_err = float(wrap_angle(state[5] - math.atan2(dy, dx)))
         fwd = self.k_dist * math.hypot(dx, dy) * max(math.cos(yaw_err), 0.0) ** 4
         return self.compose(state, fwd, dz, yaw_err)
 

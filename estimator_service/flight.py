@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.files import atomic_savez
-from estimator_service.system import System, SystemError
+from estimator_service.system import DescriptionError, System
 
 __all__ = [
     "FLIGHT_FORMAT_VERSION",
@@ -149,7 +149,7 @@ class Flight:
             raise FlightError(f"{where}: metadata has no 'system' description")
         try:
             sys_ = self.system
-        except SystemError as exc:
+        except DescriptionError as exc:
             raise FlightError(f"{where}: {exc}") from None
         n = len(self.t)
         shapes = {

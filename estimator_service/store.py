@@ -32,7 +32,7 @@ from typing import Any
 
 from estimator_service.files import STALE_AFTER_S, atomic_write_text, current_umask
 from estimator_service.models.calibration import CALIBRATION_FILE
-from estimator_service.system import System, SystemError
+from estimator_service.system import DescriptionError, System
 
 __all__ = [
     "MANIFEST_FILE",
@@ -121,7 +121,7 @@ def read_system(folder: str | os.PathLike[str]) -> System:
         )
     try:
         return System.from_json(path.read_text(encoding="utf-8"), f"{path}")
-    except SystemError as exc:
+    except DescriptionError as exc:
         raise ModelStoreError(str(exc)) from None
 
 

@@ -29,15 +29,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator_service.angles import wrap_angle, wrap_columns
 from estimator_service.filters.common import Wrapping, distinct_indices
 
 __all__ = [
+    "DescriptionError",
     "Group",
     "ModelSpec",
     "Sensor",
     "SensorType",
     "System",
-    "SystemError",
     "wrap_angle",
     "wrap_columns",
 ]
@@ -49,21 +50,8 @@ SYSTEM_VERSION = 1
 MAX_CONTROL_DELAY = 60.0  # seconds: the longest command-to-effect delay a description may declare
 
 
-class SystemError(ValueError):
+class DescriptionError(ValueError):
     """A system description is malformed, or data does not fit it."""
-
-
-def wrap_angle(a: FloatArray, period: float | FloatArray = 2 * math.pi) -> FloatArray:
-    """Angles wrapped to ``[-period/2, period/2)`` (``period`` broadcasts against ``a``)."""
-    return (np.asarray(a) + np.asarray(period) / 2) % period - np.asarray(period) / 2
-
-
-def wrap_columns(e: FloatArray, periods: FloatArray) -> FloatArray:
-    """``e (..., n)`` with the columns of non-zero period wrapped in place; returns ``e``."""
-    ang = np.flatnonzero(periods > 0)
-    if ang.size:
-        e[..., ang] = wrap_angle(e[..., ang], periods[ang])
-    return e
 
 
 def _is_name(text: object) -> bool:
@@ -74,27 +62,28 @@ def _is_name(text: object) -> bool:
 
 
 def _floats(values: object, n: int, field_name: str, where: str) -> tuple[float, ...]:
-    """``n`` finite numbers >= 0 (empty: ``n`` zeros), or a SystemError naming the field."""
+    """``n`` finite numbers >= 0 (empty: ``n`` zeros), or a DescriptionError naming the field."""
     try:
         vals = tuple(float(v) for v in values) or (0.0,) * n  # type: ignore[union-attr]
     except (TypeError, ValueError):
         vals = ()
     if len(vals) != n or not all(math.isfinite(v) and v >= 0 for v in vals):
-        raise SystemError(f"{where}: '{field_name}' needs {n} finite numbers >= 0, got {values!r}")
+        raise DescriptionError(f"{where}: '{field_name}' needs {n} finite numbers >= 0, got {values!r}")
     return vals
 
 
 def _named_values(values: object, field_name: str, where: str) -> tuple[tuple[str, float], ...]:
-    """A JSON object ``{name: number}`` as sorted pairs; a SystemError names the field."""
+    """A JSON object ``{name: number}`` as sorted pairs; a DescriptionError names the field."""
     if isinstance(values, Mapping):
         values = tuple(values.items())
     try:
         pairs = tuple((str(k), float(v)) for k, v in values)  # type: ignore[union-attr]
     except (TypeError, ValueError):
-        raise SystemError(f"{where}: '{field_name}' must map names to numbers, got {values!r}") from None
+        raise DescriptionError(f"{where}: '{field_name}' must map names to numbers, got {values!r}") from None
     bad = [k for k, v in pairs if not _is_name(k) or not math.isfinite(v)]
     if bad or len({k for k, _ in pairs}) != len(pairs):
-        raise SystemError(f"{where}: '{field_name}' needs distinct names and finite numbers (bad: {bad})")
+        want = "distinct names and finite numbers"
+        raise DescriptionError(f"{where}: '{field_name}' needs {want} (bad: {bad})")
     return tuple(sorted(pairs))
 
 
@@ -133,14 +122,14 @@ class ModelSpec:
         where = f"model {self.function!r}"
         for ref in (self.function, self.jacobian):
             if ref is not None and not _is_reference(ref):
-                raise SystemError(
+                raise DescriptionError(
                     f"{where}: {ref!r} is not 'package.module:attribute' or an entry-point name"
                 )
         object.__setattr__(self, "params", _named_values(self.params, "params", where))
         object.__setattr__(self, "fixed", _named_values(self.fixed, "fixed", where))
         clash = {k for k, _ in self.params} & {k for k, _ in self.fixed}
         if clash:
-            raise SystemError(f"{where}: {sorted(clash)} both in 'params' and in 'fixed'")
+            raise DescriptionError(f"{where}: {sorted(clash)} both in 'params' and in 'fixed'")
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -151,10 +140,10 @@ class ModelSpec:
     @classmethod
     def from_dict(cls, d: object, where: str) -> ModelSpec:
         if not isinstance(d, Mapping) or "function" not in d:
-            raise SystemError(f"{where}: a model needs a JSON object with 'function'")
+            raise DescriptionError(f"{where}: a model needs a JSON object with 'function'")
         unknown = set(d) - {"function", "params", "fixed", "jacobian"}
         if unknown:
-            raise SystemError(f"{where}: unknown model field(s) {sorted(unknown)}")
+            raise DescriptionError(f"{where}: unknown model field(s) {sorted(unknown)}")
         return cls(str(d["function"]), d.get("params") or (), d.get("fixed") or (), d.get("jacobian"))
 
 
@@ -192,9 +181,9 @@ class SensorType:
     def __post_init__(self) -> None:
         object.__setattr__(self, "constants", tuple(str(c) for c in self.constants))
         if not _is_name(self.name):
-            raise SystemError(f"sensor type name {self.name!r}: use letters, digits, '_' and '-'")
+            raise DescriptionError(f"sensor type name {self.name!r}: use letters, digits, '_' and '-'")
         if not all(map(_is_name, self.constants)) or len(set(self.constants)) != len(self.constants):
-            raise SystemError(f"sensor type {self.name!r}: 'constants' must be distinct names")
+            raise DescriptionError(f"sensor type {self.name!r}: 'constants' must be distinct names")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SensorType:
@@ -244,10 +233,10 @@ class Sensor:
     def __post_init__(self) -> None:
         object.__setattr__(self, "outputs", tuple(str(o) for o in self.outputs))
         if not _is_name(self.name):
-            raise SystemError(f"sensor name {self.name!r}: use letters, digits, '_' and '-'")
+            raise DescriptionError(f"sensor name {self.name!r}: use letters, digits, '_' and '-'")
         where = f"sensor {self.name!r}"
         if not self.outputs:
-            raise SystemError(f"{where}: 'outputs' is empty")
+            raise DescriptionError(f"{where}: 'outputs' is empty")
         object.__setattr__(self, "periods", _floats(self.periods, self.size, "periods", where))
         object.__setattr__(self, "noise_floor", _floats(self.noise_floor, self.size, "noise_floor", where))
         try:
@@ -255,10 +244,10 @@ class Sensor:
         except (TypeError, ValueError):
             constants = (math.nan,)
         if not all(math.isfinite(c) for c in constants):
-            raise SystemError(f"{where}: 'constants' must be finite numbers, got {self.constants!r}")
+            raise DescriptionError(f"{where}: 'constants' must be finite numbers, got {self.constants!r}")
         object.__setattr__(self, "constants", constants)
         if self.rate_hz is not None and not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
-            raise SystemError(f"{where}: 'rate_hz' must be > 0, got {self.rate_hz}")
+            raise DescriptionError(f"{where}: 'rate_hz' must be > 0, got {self.rate_hz}")
 
     @property
     def size(self) -> int:
@@ -368,7 +357,7 @@ class System:
         if self.disturbed is not None:
             idx = distinct_indices(self.disturbed, n)
             if idx is None:
-                raise SystemError(
+                raise DescriptionError(
                     f"system {self.name!r}: 'disturbed' must be distinct indices of the state "
                     f"(or null: all), got {self.disturbed!r}"
                 )
@@ -387,59 +376,59 @@ class System:
     def _check(self) -> None:
         n, where = len(self.state), f"system {self.name!r}"
         if n == 0 or not self.controls or not self.sensors:
-            raise SystemError(f"{where}: 'state', 'controls' and 'sensors' must be non-empty")
+            raise DescriptionError(f"{where}: 'state', 'controls' and 'sensors' must be non-empty")
         if not (math.isfinite(self.dt) and self.dt > 0):
-            raise SystemError(f"{where}: 'dt' must be a finite time > 0, got {self.dt}")
+            raise DescriptionError(f"{where}: 'dt' must be a finite time > 0, got {self.dt}")
         delay = self.control_delay
         if (
             isinstance(delay, bool)
             or not isinstance(delay, int | float)
             or not 0 <= delay <= MAX_CONTROL_DELAY
         ):
-            raise SystemError(
+            raise DescriptionError(
                 f"{where}: 'control_delay' must be seconds in [0, {MAX_CONTROL_DELAY:g}], got {delay!r}"
             )
         if len({s.name for s in self.sensors}) != len(self.sensors):
-            raise SystemError(f"{where}: sensor names must be unique")
+            raise DescriptionError(f"{where}: sensor names must be unique")
         for key in ("state_periods", "prior_mean", "prior_std"):
             vals = getattr(self, key)
             if len(vals) != n or not all(math.isfinite(v) for v in vals):
-                raise SystemError(f"{where}: '{key}' needs {n} finite values, got {len(vals)}")
+                raise DescriptionError(f"{where}: '{key}' needs {n} finite values, got {len(vals)}")
         if any(p < 0 for p in self.state_periods) or any(s <= 0 for s in self.prior_std):
-            raise SystemError(f"{where}: 'state_periods' must be >= 0 and 'prior_std' > 0")
+            raise DescriptionError(f"{where}: 'state_periods' must be >= 0 and 'prior_std' > 0")
         if any(not 0 <= i < n or self.state_periods[i] <= 0 for i in self.circle_inputs or ()):
-            raise SystemError(f"{where}: 'circle_inputs' must index angle components of the state")
+            raise DescriptionError(f"{where}: 'circle_inputs' must index angle components of the state")
         for g in self.groups:
             if not g.indices or any(not 0 <= i < n for i in g.indices):
-                raise SystemError(f"{where}: group {g.name!r} indexes outside the state")
+                raise DescriptionError(f"{where}: group {g.name!r} indexes outside the state")
 
     def _check_types(self) -> None:
         where = f"system {self.name!r}"
         types = {t.name: t for t in self.sensor_types}
         if len(types) != len(self.sensor_types):
-            raise SystemError(f"{where}: sensor type names must be unique")
+            raise DescriptionError(f"{where}: sensor type names must be unique")
         if self.parametric is not None and (self.prediction_model or any(t.model for t in types.values())):
-            raise SystemError(
+            raise DescriptionError(
                 f"{where}: 'parametric' ({self.parametric!r}) and your own models exclude each other"
             )
         layouts: dict[str, tuple] = {}
         for s in self.sensors:
             if s.type is None:
                 if s.constants:
-                    raise SystemError(f"{where}: sensor {s.name!r} has 'constants' but no 'type'")
+                    raise DescriptionError(f"{where}: sensor {s.name!r} has 'constants' but no 'type'")
                 continue
             t = types.get(s.type)
             if t is None:
-                raise SystemError(
+                raise DescriptionError(
                     f"{where}: sensor {s.name!r}: unknown type {s.type!r}; declare it in 'sensor_types'"
                 )
             if len(s.constants) != len(t.constants):
-                raise SystemError(
+                raise DescriptionError(
                     f"{where}: sensor {s.name!r} needs {len(t.constants)} 'constants' {list(t.constants)} "
                     f"of type {t.name!r}, got {len(s.constants)}"
                 )
             if layouts.setdefault(t.name, (s.outputs, s.periods)) != (s.outputs, s.periods):
-                raise SystemError(
+                raise DescriptionError(
                     f"{where}: sensors of type {t.name!r} must have the same outputs and periods"
                 )
 
@@ -551,17 +540,17 @@ class System:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str = "system description") -> System:
-        """Read :meth:`to_dict`'s output; :class:`SystemError` names the field at fault."""
+        """Read :meth:`to_dict`'s output; :class:`DescriptionError` names the field at fault."""
         if not isinstance(d, Mapping):
-            raise SystemError(f"{where}: expected a JSON object")
+            raise DescriptionError(f"{where}: expected a JSON object")
         if (
             d.get("format", SYSTEM_FORMAT) != SYSTEM_FORMAT
             or d.get("version", SYSTEM_VERSION) != SYSTEM_VERSION
         ):
-            raise SystemError(f"{where}: not a version-{SYSTEM_VERSION} {SYSTEM_FORMAT} description")
+            raise DescriptionError(f"{where}: not a version-{SYSTEM_VERSION} {SYSTEM_FORMAT} description")
         missing = [k for k in ("name", "state", "controls", "sensors", "dt") if k not in d]
         if missing:
-            raise SystemError(f"{where}: missing field(s) {missing}")
+            raise DescriptionError(f"{where}: missing field(s) {missing}")
         try:
             sensors = tuple(Sensor.from_dict(s) for s in d["sensors"])
             types = tuple(SensorType.from_dict(t) for t in d.get("sensor_types") or ())
@@ -579,17 +568,17 @@ class System:
                 disturbed, prediction, types, tuple(d.get("process_noise_floor") or ()),
                 d.get("control_delay", 0.0),
             )  # fmt: skip
-        except SystemError as exc:
-            raise SystemError(f"{where}: {exc}") from None
+        except DescriptionError as exc:
+            raise DescriptionError(f"{where}: {exc}") from None
         except (KeyError, TypeError, ValueError) as exc:
-            raise SystemError(f"{where}: malformed ({type(exc).__name__}: {exc})") from None
+            raise DescriptionError(f"{where}: malformed ({type(exc).__name__}: {exc})") from None
 
     @classmethod
     def from_json(cls, text: str, where: str = "system description") -> System:
         try:
             return cls.from_dict(json.loads(text), where)
         except json.JSONDecodeError as exc:
-            raise SystemError(f"{where}: not JSON ({exc})") from None
+            raise DescriptionError(f"{where}: not JSON ({exc})") from None
 
     def __repr__(self) -> str:
         sensors = ", ".join(f"{s.name}({s.size})" for s in self.sensors)

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from estimator_service.filters import GaussianBelief, StepInfo, make_pd
+from estimator_service.filters.policy import step_one, update_many
 from estimator_service.flight import Flight
 from estimator_service.system import Group, System
 
@@ -154,7 +155,7 @@ def track_flight(
     means, covs, nis, dof, div = [], [], [], [], []
     t0 = time.perf_counter()
     for k in range(n - 1):
-        belief, info = filt.step(belief, fl.control[k], fl.z[k + 1], valid_all[k + 1], rng)
+        belief, info = step_one(filt, belief, fl.control[k], fl.z[k + 1], valid_all[k + 1], rng)
         info = info if isinstance(info, StepInfo) else StepInfo()
         if fl.extra is not None:
             belief, info = _extra_updates(filt, belief, info, fl, k + 1, rng)
@@ -186,7 +187,8 @@ def _extra_updates(filt, belief, info: StepInfo, fl: Flight, row: int, rng: np.r
     the step's NIS and degrees of freedom add up over the updates."""
     extra = fl.extra
     for i in extra.at(row):
-        belief, more = filt.update(belief, extra.z[i], fl.system.expand_valid(extra.valid[i]), rng)
+        valid = fl.system.expand_valid(extra.valid[i])
+        belief, more = update_many(filt, [belief], extra.z[i][None], valid[None], rng=rng)[0]
         if more.dof:
             nis = more.nis if not info.dof else info.nis + more.nis
             info = StepInfo(nis, info.dof + more.dof, info.diverged or more.diverged)

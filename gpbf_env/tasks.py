@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from gpbf_env.dynamics import wrap_angle
+
 __all__ = [
     "HOVER_START_RADIUS",
     "TASKS",
@@ -95,12 +97,8 @@ def hover_start(rng: np.random.Generator, state: FloatArray, goal: FloatArray) -
     """
     out = np.array(state, dtype=np.float64)
     out[:3] = goal[:3] + rng.uniform(-HOVER_START_RADIUS, HOVER_START_RADIUS, size=3)
-    out[5] = float(_wrap(np.array(goal[3] + rng.uniform(-0.5, 0.5))))
+    out[5] = float(wrap_angle(np.array(goal[3] + rng.uniform(-0.5, 0.5))))
     return out
-
-
-def _wrap(a: FloatArray) -> FloatArray:
-    return a - 2.0 * math.pi * np.floor((a + math.pi) / (2.0 * math.pi))
 
 
 def task_reward(
@@ -151,7 +149,7 @@ def task_reward(
         target_yaw = np.arctan2(delta[:, 1], delta[:, 0])
         if holding is not None:
             target_yaw = np.where(holding, goal[:, 3], target_yaw)
-    heading_err = np.abs(_wrap(yaw - target_yaw))
+    heading_err = np.abs(wrap_angle(yaw - target_yaw))
     return {
         "alive": np.full(dist.shape, weights.alive),
         "distance": distance,

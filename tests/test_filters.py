@@ -16,6 +16,7 @@ from estimator_service.filters import (
     ParticleBelief,
     Wrapping,
     sigma_weights,
+    step_many,
     systematic_resample,
 )
 from estimator_service.models import (
@@ -247,8 +248,8 @@ def test_non_finite_prediction_keeps_the_belief_and_flags_divergence(cls) -> Non
     assert info.diverged and post is PRIOR
     again, info2 = filt.step(post, np.zeros(2), np.zeros(3), None)  # and the next step too
     assert info2.diverged and np.all(np.isfinite(again.cov))
-    (b, i), (_, i2) = filt.step_many(
-        [PRIOR, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
+    (b, i), (_, i2) = step_many(
+        filt, [PRIOR, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
     )
     assert i.diverged and i2.diverged and b is PRIOR
 
@@ -287,12 +288,57 @@ def test_a_covariance_that_cannot_be_factored_is_flagged_not_raised(cls) -> None
     assert info.diverged and np.isfinite(post.mean).all()  # the belief or its prediction
     post, info = filt.update(blown, np.zeros(3))  # an update alone is refused the same way
     assert info.diverged and post is blown
-    (b, i), (good, i2) = filt.step_many(
-        [blown, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
+    (b, i), (good, i2) = step_many(
+        filt, [blown, PRIOR], np.zeros((2, 2)), np.zeros((2, 3)), np.ones((2, 3), bool)
     )
     assert i.diverged and np.isfinite(b.mean).all() and not i2.diverged
     ref, _ = filt.step(PRIOR, np.zeros(2), np.zeros(3), None)
     np.testing.assert_allclose(good.mean, ref.mean, rtol=1e-12, atol=1e-12)
+
+
+@dataclass(frozen=True)
+class BrokenWhere:
+    """A prediction model that overflows where the control's first entry exceeds 1 (one
+    blimp of a batch flown far outside the model's data)."""
+
+    inner: object
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
+
+    def predict(self, x, u, *, jac=False, var=True):
+        out = self.inner.predict(x, u, jac=jac, var=var)
+        bad = np.broadcast_to(np.atleast_2d(u)[:, :1] > 1, out.mean.shape)
+        return ModelOutput(np.where(bad, np.inf, out.mean), out.var, out.jac)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf", "pf"])
+def test_step_policy_does_not_depend_on_the_batch(kind: str) -> None:
+    """One policy: each belief's step (a non-finite prediction kept and flagged, a gated
+    update refused, a plain update, a prediction without readings) is the same alone and in a
+    batch with the others, for the batched Kalman filters and the per-belief particle filter."""
+    pred = BrokenWhere(PRED)
+    filt = {"ekf": EKF(pred, OBS), "ukf": UKF(pred, OBS), "pf": PF(pred, OBS, n_particles=200)}[kind]
+    start = filt.initial(PRIOR, np.random.default_rng(0))
+    u = np.array([[5.0, 0.0], [0.1, 0.0], [0.1, 0.0], [0.1, 0.0]])  # row 0: non-finite prediction
+    z = np.array([[0.0, 0.0, 0.0], [50.0, -50.0, 0.0], [0.1, 0.2, 0.0], [0.0, 0.0, 0.0]])  # row 1: gated
+    valid = np.array([[True] * 3, [True] * 3, [True] * 3, [False] * 3])  # row 3: nothing read
+
+    def gate(info):
+        return info.nis > 100.0
+
+    together = step_many(filt, [start] * 4, u, z, valid, gate, [np.random.default_rng(i) for i in range(4)])
+    alone = [step_many(filt, [start], u[i : i + 1], z[i : i + 1], valid[i : i + 1], gate,
+                       np.random.default_rng(i))[0] for i in range(4)]  # fmt: skip
+    for (b1, i1), (b2, i2) in zip(together, alone, strict=True):
+        g1, g2 = filt.gaussian(b1), filt.gaussian(b2)
+        np.testing.assert_allclose(g1.mean, g2.mean, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(g1.cov, g2.cov, rtol=1e-10, atol=1e-12)
+        assert (i1.diverged, i1.gated, i1.dof) == (i2.diverged, i2.gated, i2.dof)
+    infos = [i for _, i in together]
+    assert together[0][0] is start and infos[0].diverged and infos[0].dof == 0
+    assert infos[1].gated and infos[1].dof == 0 and infos[1].nis > 100.0
+    assert infos[2].dof == 3 and not infos[2].gated and infos[3].dof == 0 and not infos[3].diverged
 
 
 def test_implausible_innovation_is_flagged() -> None:
@@ -393,7 +439,7 @@ def test_batched_kalman_step_equals_one_blimp_at_a_time(cls, noise) -> None:
     valid = np.zeros((b, nz), bool)
     for i in range(b):
         valid[i, : 3 * (i % 3)] = True  # 0, 1 or 2 "cameras" of 3 values
-    batched = ekf.step_many(beliefs, u, z, valid)
+    batched = step_many(ekf, beliefs, u, z, valid)
     for i in range(b):
         one_belief, info = ekf.step(beliefs[i], u[i], z[i], valid[i])
         np.testing.assert_allclose(batched[i][0].mean, one_belief.mean, rtol=1e-10, atol=1e-12)
@@ -523,7 +569,7 @@ def test_adaptive_ekf_batched_equals_one_at_a_time_and_the_pf_refuses_the_option
     ekf = EKF(PRED, OBS, adapt_rate=0.5)
     beliefs = [GaussianBelief(PRIOR.mean + 0.1 * i, PRIOR.cov, 1.0 + i) for i in range(3)]
     u, z = np.ones((3, 2)), np.full((3, 3), 4.0)  # large innovations: the factor moves
-    batched = ekf.step_many(beliefs, u, z, np.ones((3, 3), bool))
+    batched = step_many(ekf, beliefs, u, z, np.ones((3, 3), bool))
     for b, (post, _) in zip(beliefs, batched, strict=True):
         one, _ = ekf.step(b, u[0], z[0], np.ones(3, bool))
         np.testing.assert_allclose(post.mean, one.mean, rtol=1e-12)

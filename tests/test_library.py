@@ -19,7 +19,7 @@ from estimator_service.filters import EKF, PF, UKF, GaussianBelief
 from estimator_service.flight import FlightError, load_csv, load_log, make_flight, save_flight
 from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.store import ModelStoreError, check_folder, model_version, seal, writing
-from estimator_service.system import System, SystemError
+from estimator_service.system import DescriptionError, System
 from tests.robot_log import SYSTEM, write_robot_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +35,7 @@ def test_system_round_trips_and_errors_name_the_field() -> None:
                                6.2 - 2 * math.pi)  # fmt: skip
     for bad, field in ((dict(SYSTEM, dt=0), "dt"), (dict(SYSTEM, state_periods=[0, 1]), "state_periods"),
                        ({k: v for k, v in SYSTEM.items() if k != "sensors"}, "sensors")):  # fmt: skip
-        with pytest.raises(SystemError, match=field):
+        with pytest.raises(DescriptionError, match=field):
             System.from_dict(bad)
     assert "Cholesky" not in repr(s) and len(repr(s)) < 200
 
@@ -56,7 +56,7 @@ def test_disturbed_states_round_trip_default_to_all_and_bad_ones_are_named() -> 
     assert plain.disturbed is None and json.loads(plain.to_json())["disturbed"] is None
     assert System.from_dict(dict(SYSTEM, disturbed=[3, 4])) == plain
     for bad in ([5], [-1], [1, 1], [], "v", [1.5], 3):
-        with pytest.raises(SystemError, match=r"disturbed|malformed"):
+        with pytest.raises(DescriptionError, match=r"disturbed|malformed"):
             System.from_dict(dict(SYSTEM, disturbed=bad))
 
 

@@ -141,3 +141,30 @@ def test_the_service_gate_sits_at_its_chi_square_quantile(gate_p: float, dof: in
     assert not gated(StepInfo(edge * (1 - 1e-9), dof), gate_p)
     assert gated(StepInfo(edge * (1 + 1e-9), dof), gate_p)
     assert not gated(StepInfo(1e300, dof), 0.0)  # a gate of 0 is off
+
+
+def test_one_angle_rule_in_the_estimator_the_filters_and_the_simulator() -> None:
+    """Every angle is wrapped into [-p/2, p/2): the estimator's rule, the filters' wrapping
+    (state values, state and observation differences) and the simulator's compiled kernel give
+    the same numbers, the edges included (+p/2 maps to -p/2)."""
+    from estimator_service.angles import wrap_angle
+    from estimator_service.filters import Wrapping
+    from gpbf_env.dynamics import wrap_angle as sim_wrap
+
+    pi = np.pi
+    a = np.array([pi, -pi, 3 * pi, -3 * pi, 0.0, -0.0, 1e-17, -1e-17, pi - 1e-15, 7.5, -7.5, 1e6, -1e6])
+    ours = wrap_angle(a)
+    assert np.all((ours >= -pi) & (ours < pi))
+    assert ours[0] == -pi and ours[1] == -pi and ours[2] == -pi and ours[3] == -pi
+    np.testing.assert_array_equal(ours, sim_wrap(a))  # the kernel on an array
+    np.testing.assert_array_equal(ours, [sim_wrap(float(v)) for v in a])  # and one float at a time
+    w = Wrapping(np.array([0.0, 2 * pi, pi]), np.array([2 * pi]))
+    x = np.stack([a, a, a], axis=1)
+    expect = np.stack([a, ours, wrap_angle(a, pi)], axis=1)
+    np.testing.assert_array_equal(w.state_value(x), expect)
+    np.testing.assert_array_equal(w.state_diff(x), expect)
+    np.testing.assert_array_equal(w.obs_diff(a[:, None]), ours[:, None])
+    half = wrap_angle(np.array([pi / 2, -pi / 2]), pi)  # period pi: [-pi/2, pi/2)
+    np.testing.assert_array_equal(half, [-pi / 2, -pi / 2])
+    z = wrap_angle(np.array([3 * pi + 1e-20j]))  # complex step: the derivative passes through
+    assert z[0].imag == 1e-20 and z[0].real == -pi

@@ -16,8 +16,9 @@ import zenoh
 
 from agents.sim import collect_flight
 from estimator_service.factory import build_filter
-from estimator_service.filters import GaussianBelief
+from estimator_service.filters import GaussianBelief, step_many
 from estimator_service.service.client import EstimatorClient, ServiceError, free_port, open_session, services
+from estimator_service.service.limits import Limits, gate_for
 from estimator_service.service.protocol import PROTOCOL_VERSION, decode_belief
 from estimator_service.training import TrainSettings, train_models
 
@@ -100,9 +101,12 @@ def in_process(models: Path, flight, steps: int, filter_kind: str = "ekf", seed:
     b0 = GaussianBelief(flight.state[0], np.diag(STD * STD))
     belief = filt.initial(b0, rng)
     valid = flight.expand_valid()
+    gate = gate_for(Limits().gate_p)
     out = []
-    for k in range(steps):
-        belief, _ = filt.step(belief, flight.control[k], flight.z[k + 1], valid[k + 1], rng)
+    for k in range(steps):  # the step policy the service runs, with the service's gate
+        [(belief, _)] = step_many(
+            filt, [belief], flight.control[k][None], flight.z[k + 1][None], valid[k + 1][None], gate, rng
+        )
         out.append(filt.gaussian(belief).mean)
     return np.array(out)
 

@@ -15,7 +15,7 @@ import pytest
 from estimator_service.factory import build_filter, load_models
 from estimator_service.flight import Flight, make_flight
 from estimator_service.models.gp_models import SharedGPObservation, StackedObservationModel
-from estimator_service.system import System, SystemError
+from estimator_service.system import DescriptionError, System
 from estimator_service.tracking import track_flight
 from estimator_service.training import TrainSettings, available_kinds, train_models
 from estimator_service.user_models import UserModelError, load_user_models, resolve
@@ -222,7 +222,7 @@ def test_user_model_jacobians_wrap_angle_outputs_at_the_cut(rover: System, train
 def test_a_malformed_description_names_the_field(edit, message: str) -> None:
     d = description()
     edit(d)
-    with pytest.raises(SystemError, match=message):
+    with pytest.raises(DescriptionError, match=message):
         System.from_dict(d)
 
 

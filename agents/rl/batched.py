@@ -7,8 +7,9 @@ dones and terminal observations that SB3's ``DummyVecEnv`` of ``N``
 one-at-a-time path), to rounding: the simulator is the same arithmetic
 (:class:`~gpbf_env.BlimpVectorEnv` with same-step autoreset), the GP-EKF's and GP-UKF's
 batched steps (``step_many``: one model call for all blimps) equal their single steps up to
-the rounding of a batched GP call, and the innovation gate is the service's. The PF, which
-has no batched step, is stepped per blimp with :func:`gated_step`.
+the rounding of a batched GP call, and the step policy and innovation gate are the service's
+(:func:`~estimator_service.filters.policy.step_many`; the PF steps each blimp with its own
+generator).
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ from agents.rl.wrappers import (
 from estimator_service.blimp import blimp_system
 from estimator_service.factory import build_filter
 from estimator_service.filters import GaussianBelief
-from estimator_service.filters.common import StepInfo
-from estimator_service.service.limits import gated, gated_step
+from estimator_service.filters.policy import step_many
+from estimator_service.service.limits import gate_for
 from estimator_service.system import System
 from gpbf_env import MAX_EPISODE_STEPS, BlimpVectorEnv
 
@@ -198,14 +199,8 @@ class BeliefVecEnv(VecEnv):
         if self.filter is None:
             return
         z, ok = readings_many(ellipses, valid, self.system)
-        if hasattr(self.filter, "step_many"):
-            out = self.filter.step_many(self._beliefs, a, z, ok, gate=_gate)
-            self._beliefs = [b for b, _ in out]
-            return
-        for i in range(self.num_envs):  # the PF: one blimp at a time
-            self._beliefs[i], _ = gated_step(
-                self.filter, self._beliefs[i], a[i], z[i], ok[i], self._rngs[i], GATE_P
-            )
+        out = step_many(self.filter, self._beliefs, a, z, ok, gate_for(GATE_P), self._rngs)
+        self._beliefs = [b for b, _ in out]
 
     def _features(
         self,
@@ -225,7 +220,3 @@ class BeliefVecEnv(VecEnv):
         mean = np.stack([g.mean for g in gs])
         std = np.sqrt(np.stack([np.diag(g.cov) for g in gs]))
         return bounded(belief_features_many(mean, std, goal))
-
-
-def _gate(info: StepInfo) -> bool:
-    return gated(info, GATE_P)

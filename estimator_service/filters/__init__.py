@@ -9,6 +9,7 @@ from estimator_service.filters.common import (
 )
 from estimator_service.filters.kalman import EKF, UKF, sigma_weights
 from estimator_service.filters.particle import PF, systematic_resample
+from estimator_service.filters.policy import step_many, step_one, update_many
 
 __all__ = [
     "EKF",
@@ -20,5 +21,8 @@ __all__ = [
     "Wrapping",
     "make_pd",
     "sigma_weights",
+    "step_many",
+    "step_one",
     "systematic_resample",
+    "update_many",
 ]

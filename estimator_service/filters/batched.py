@@ -17,7 +17,7 @@ from scipy.special import chdtrc
 
 from estimator_service.filters.common import DIVERGENCE_P, GaussianBelief, StepInfo, Wrapping
 
-__all__ = ["implausible_many", "joseph_update_many"]
+__all__ = ["implausible_many", "joseph", "joseph_update_many"]
 
 FloatArray = NDArray[np.float64]
 Single = Callable[[int], tuple[GaussianBelief, StepInfo]]
@@ -29,6 +29,17 @@ def implausible_many(nis: FloatArray, dof: int) -> NDArray[np.bool_]:
         return np.zeros(nis.shape, bool)
     with np.errstate(invalid="ignore"):
         return ~np.isfinite(nis) | (chdtrc(dof, nis) < DIVERGENCE_P)
+
+
+def joseph(cov: FloatArray, k: FloatArray, h: FloatArray, r_noise: FloatArray) -> FloatArray:
+    """The Joseph-form posterior covariance ``(I - K H) P (I - K H)^T + K R K^T``,
+    symmetrised, for one belief or a batch: ``cov (..., n, n)``, gain ``k (..., n, q)``,
+    Jacobian ``h (..., q, n)``, observation noise variances ``r_noise (..., q)`` (``R``
+    diagonal). Equal to ``(I - K H) P`` for the optimal gain, and positive semi-definite for
+    any gain."""
+    a = np.eye(cov.shape[-1]) - k @ h
+    post = a @ cov @ np.swapaxes(a, -1, -2) + (k * r_noise[..., None, :]) @ np.swapaxes(k, -1, -2)
+    return 0.5 * (post + np.swapaxes(post, -1, -2))
 
 
 def joseph_update_many(
@@ -70,9 +81,7 @@ def joseph_update_many(
     k = solved[:, :, :-1].transpose(0, 2, 1)  # (B, n, q): P H^T S^-1
     nis = np.einsum("bq,bq->b", r, solved[:, :, -1])
     post_mean = wrap.state_value(mean + np.einsum("bnq,bq->bn", k, r))
-    a = np.eye(mean.shape[1]) - k @ h
-    post = a @ cov @ a.transpose(0, 2, 1) + (k * r_noise[:, None, :]) @ k.transpose(0, 2, 1)
-    post = 0.5 * (post + post.transpose(0, 2, 1))
+    post = joseph(cov, k, h, r_noise)
     ok = np.isfinite(post_mean).all(axis=1) & np.isfinite(post).all(axis=(1, 2)) & np.isfinite(nis)
     try:
         if not ok.all():

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from scipy.special import logsumexp
 from scipy.stats import chi2
 
+from estimator_service.angles import wrap_angle
 from estimator_service.reprs import short_repr
 
 __all__ = [
@@ -133,11 +134,7 @@ class Wrapping:
 
     @staticmethod
     def _wrap(d: FloatArray, periods: FloatArray) -> FloatArray:
-        if not np.any(periods):
-            return d
-        p = np.where(periods > 0, periods, 1.0)
-        wrapped = d - p * np.ceil(d / p - 0.5)  # into (-p/2, p/2]
-        return np.where(periods > 0, wrapped, d)
+        return wrap_angle(d, periods) if np.any(periods) else d
 
     def state_diff(self, d: FloatArray) -> FloatArray:
         return self._wrap(d, self.state)
@@ -146,7 +143,7 @@ class Wrapping:
         return self._wrap(d, self.obs[idx])
 
     def state_value(self, x: FloatArray) -> FloatArray:
-        """Angles of a state wrapped into ``(-p/2, p/2]``."""
+        """Angles of a state wrapped into ``[-p/2, p/2)`` (:mod:`estimator_service.angles`)."""
         return self._wrap(x, self.state)
 
     def mean(self, values: FloatArray, weights: FloatArray, periods: FloatArray) -> FloatArray:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -11,7 +11,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from estimator_service.filters.adaptive import MAX_INFLATION, adapted, check_adaptation, inflation_factors
-from estimator_service.filters.batched import joseph_update_many
+from estimator_service.filters.batched import joseph, joseph_update_many
 from estimator_service.filters.common import (
     GaussianBelief,
     StepInfo,
@@ -22,6 +22,7 @@ from estimator_service.filters.common import (
     implausible,
     nis_from_cholesky,
 )
+from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.reprs import short_repr
 
@@ -45,9 +46,8 @@ def _kalman_update(
         return prior, StepInfo(math.nan, len(r), True)
     k = sla.cho_solve((ls, True), pxz.T, check_finite=False).T  # Pxz S^-1
     mean = wrap.state_value(prior.mean + k @ r)
-    if joseph_h is not None:  # EKF: (I - KH) P (I - KH)^T + K R K^T
-        a = np.eye(len(mean)) - k @ joseph_h
-        cov = a @ prior.cov @ a.T + (k * r_noise) @ k.T
+    if joseph_h is not None:  # EKF: the Joseph form
+        cov = joseph(prior.cov, k, joseph_h, r_noise)
     else:  # UKF: P - K S K^T
         cov = prior.cov - k @ s @ k.T
     nis = nis_from_cholesky(ls, r)
@@ -127,48 +127,15 @@ class _GaussianFilter:
         """:meth:`update` of ``B`` beliefs with ``z, valid: (B, m)`` in one model call."""
         raise NotImplementedError
 
-    def step_many(
-        self, beliefs: Sequence[GaussianBelief], u: FloatArray, z: FloatArray, valid: NDArray[np.bool_],
-        gate: Callable[[StepInfo], bool] | None = None,
-    ) -> list[tuple[GaussianBelief, StepInfo]]:  # fmt: skip
-        """:meth:`step` for ``B`` independent beliefs: ``u: (B, k)``, ``z, valid: (B, m)``.
-
-        ``gate(info)`` True refuses an update (an implausible innovation): that belief is
-        its prediction, reported with ``dof = 0`` and the refused update's NIS.
-        """
-        priors = self.predict_many(beliefs, u)
-        ok = [finite(p.mean, p.cov) for p in priors]
-        out = self.update_many(
-            [p if f else b for p, b, f in zip(priors, beliefs, ok, strict=True)],
-            z,
-            valid & np.array(ok)[:, None],
-        )
-        results = []
-        for (post, info), prior, b, f in zip(out, priors, beliefs, ok, strict=True):
-            if not f:
-                results.append((b, StepInfo(math.nan, 0, True)))
-            elif gate is not None and gate(info):
-                results.append((prior, info.refused()))
-            else:
-                results.append((post, info))
-        return results
-
     def step(
         self, belief: GaussianBelief, u: FloatArray, z: FloatArray | None = None,
         valid: NDArray[np.bool_] | None = None, rng: np.random.Generator | None = None,
     ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
-        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``.
-
-        If the prediction is not finite (a model evaluated far outside its data), the step
-        keeps ``belief`` and flags divergence instead of returning NaN. ``rng`` is accepted
-        for the common filter interface (the Kalman filters draw nothing).
-        """
-        prior = self.predict(belief, u)
-        if not finite(prior.mean, prior.cov):
-            return belief, StepInfo(math.nan, 0, True)
-        if z is None or (valid is not None and not np.any(valid)):
-            return prior, StepInfo()
-        return self.update(prior, z, valid)
+        """Predict with control ``u (k,)``, then update with the valid entries of ``z (m,)``:
+        :func:`~estimator_service.filters.policy.step_many` for a batch of one (a non-finite
+        prediction keeps ``belief`` and flags divergence). ``rng`` is accepted for the
+        common filter interface (the Kalman filters draw nothing)."""
+        return step_one(self, belief, u, z, valid, rng)
 
 
 @dataclass(frozen=True)

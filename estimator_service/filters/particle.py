@@ -21,6 +21,7 @@ from estimator_service.filters.common import (
     nis_from_cholesky,
     normalise_log_weights,
 )
+from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel
 from estimator_service.reprs import short_repr
 
@@ -179,14 +180,9 @@ class PF:
         valid: NDArray[np.bool_] | None = None, rng: np.random.Generator | None = None,
     ) -> tuple[ParticleBelief, StepInfo]:  # fmt: skip
         """One GP-PF step (Table 1) with control ``u (k,)`` and the valid entries of ``z (m,)``;
-        ``rng`` (required) draws the process noise and the resampling."""
-        rng = _need_rng(rng, "step")
-        prior = self.predict(belief, u, rng)
-        if not finite(prior.particles):
-            return belief, StepInfo(diverged=True, ess=belief.ess)
-        if z is None or (valid is not None and not np.any(valid)):
-            return prior, StepInfo(ess=prior.ess)
-        return self.update(prior, z, valid, rng)
+        ``rng`` (required) draws the process noise and the resampling: the policy of
+        :func:`~estimator_service.filters.policy.step_many` for a batch of one."""
+        return step_one(self, belief, u, z, valid, _need_rng(rng, "step"))
 
 
 def _need_rng(rng: np.random.Generator | None, method: str) -> np.random.Generator:

@@ -198,7 +198,7 @@ class ExactGP:
         over_outputs(one, p_out)
         return mean, np.maximum(var, 0.0, out=var), jac
 
-    def noise_std_units(self, xs: FloatArray) -> FloatArray:
+    def noise_var_standardised(self, xs: FloatArray) -> FloatArray:
         """Standardised noise variance at queries ``xs (M, d)`` -> ``(M, P)``."""
         return np.broadcast_to(np.exp(2 * self.theta[:, -1]), (xs.shape[0], self.output_dim))
 
@@ -211,7 +211,7 @@ class ExactGP:
         xs = self.x_scaler.apply(xq)
         mean, var, jac = self.latent(xs, return_var, return_jac)
         if var is not None and include_noise:
-            var = var + self.noise_std_units(xs)
+            var = var + self.noise_var_standardised(xs)
         return unscale(self.x_scaler, self.y_scaler, mean, var, jac)
 
 

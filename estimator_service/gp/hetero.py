@@ -71,9 +71,9 @@ class HeteroscedasticGP:
     def noise_var(self, x: FloatArray) -> FloatArray:
         """Input-dependent noise variance ``(M, P)`` in original units."""
         xs = self.main.x_scaler.apply(check_query(x, self.input_dim))
-        return self._noise_std_units(xs) * self.main.y_scaler.std**2
+        return self._noise_var_standardised(xs) * self.main.y_scaler.std**2
 
-    def _noise_std_units(self, xs: FloatArray) -> FloatArray:
+    def _noise_var_standardised(self, xs: FloatArray) -> FloatArray:
         log_rel = self.noise.predict(xs, return_var=False).mean
         return np.exp(2.0 * self.main.theta[:, -1]) * np.exp(log_rel)
 
@@ -85,7 +85,7 @@ class HeteroscedasticGP:
         xs = self.main.x_scaler.apply(check_query(x, self.input_dim))
         mean, var, jac = self.main.latent(xs, return_var, return_jac)
         if var is not None and include_noise:
-            var = var + self._noise_std_units(xs)
+            var = var + self._noise_var_standardised(xs)
         return unscale(self.main.x_scaler, self.main.y_scaler, mean, var, jac)
 
 

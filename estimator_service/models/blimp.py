@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from estimator_service.angles import wrap_angle
 from estimator_service.models.base import ModelOutput, controls_for
 from estimator_service.reprs import short_repr
 
@@ -38,10 +39,6 @@ DEFAULT_PARAMS = np.array(
     [0.6, 0.6, 0.02, 0.1, 0.05, 0.2, 0.2, 0.01, 0.04, 0.04, 0.0, 0.3, 0.15, 1.5, 0.04, 0.4]
 )
 _SIGNED = {"net_lift"}  # may be negative; every other parameter is positive
-
-
-def _wrap(a):
-    return a - 2 * np.pi * np.floor((a.real + np.pi) / (2 * np.pi))
 
 
 def _derivative(s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float, float]) -> FloatArray:
@@ -90,7 +87,7 @@ def _derivative(s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float
 def _change(nxt: FloatArray, x: FloatArray) -> FloatArray:
     """The state change ``nxt - x (N, 12)`` with the angle changes wrapped."""
     d = nxt - x
-    d[:, 3:6] = _wrap(d[:, 3:6])
+    d[:, 3:6] = wrap_angle(d[:, 3:6])
     return d
 
 
@@ -188,7 +185,7 @@ def fit_blimp_ode(
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(u)) and np.all(np.isfinite(x_next))):
         raise ValueError("training trajectories contain NaN or Inf")
     target = x_next - x
-    target[:, 3:6] = _wrap(target[:, 3:6])
+    target[:, 3:6] = wrap_angle(target[:, 3:6])
     scale = np.maximum(target.std(axis=0), 1e-9)
     signed = np.array([n in _SIGNED for n in PARAM_NAMES])
     start = DEFAULT_PARAMS if initial is None else np.asarray(initial, dtype=np.float64)

@@ -8,8 +8,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from estimator_service.filters.policy import step_many
 from estimator_service.service.inbox import Job
-from estimator_service.service.limits import gated
+from estimator_service.service.limits import gate_for
 from estimator_service.service.protocol import ProtocolError
 
 if TYPE_CHECKING:  # sessions call this module; it only uses their methods
@@ -36,12 +37,13 @@ def step_together(batch: list[tuple[Session, Job]]) -> None:
         return
     try:
         gate_p = ready[0][0].settings.limits.gate_p
-        results = ready[0][0].filter.step_many(
+        results = step_many(
+            ready[0][0].filter,
             [s.belief for s, _, _ in ready],
             np.stack([p[0].u for _, _, p in ready]),
             np.stack([p[1] for _, _, p in ready]),
             np.stack([p[2] for _, _, p in ready]),
-            gate=lambda info: gated(info, gate_p),
+            gate=gate_for(gate_p),
         )
     except Exception:  # fall back: each job alone, with its own error handling
         for s, job, _ in ready:

@@ -19,8 +19,18 @@ from scipy.stats import chi2
 
 from estimator_service.cli_args import checked_float, checked_int
 from estimator_service.filters import StepInfo
+from estimator_service.filters.policy import Gate, step_one
 
-__all__ = ["OPTIONS", "ControlLog", "Limits", "add_limit_options", "gated", "gated_step", "limits_from"]
+__all__ = [
+    "OPTIONS",
+    "ControlLog",
+    "Limits",
+    "add_limit_options",
+    "gate_for",
+    "gated",
+    "gated_step",
+    "limits_from",
+]
 
 
 @dataclass(frozen=True)
@@ -117,15 +127,15 @@ def gated_step(
     filt: Any, belief: Any, u: np.ndarray, z: np.ndarray, valid: np.ndarray, rng: np.random.Generator,
     gate_p: float,
 ) -> tuple[Any, StepInfo]:  # fmt: skip
-    """One lock-step step as a service session runs it: predict with ``u``, update with the
-    ``valid`` entries of ``z`` (none: the prediction), and keep the prediction when the
-    innovation fails the gate (reported by :meth:`StepInfo.refused`). In-process users
-    who want the service's beliefs call this instead of ``filt.step``."""
-    prior = filt.predict(belief, u, rng)
-    if not valid.any():
-        return prior, StepInfo()
-    post, info = filt.update(prior, z, valid, rng)
-    return (prior, info.refused()) if gated(info, gate_p) else (post, info)
+    """One lock-step step as a service session runs it: the step policy
+    (:func:`~estimator_service.filters.policy.step_one`) with the service's innovation gate
+    at ``gate_p``. In-process users who want the service's beliefs call this."""
+    return step_one(filt, belief, u, z, valid, rng, gate_for(gate_p))
+
+
+def gate_for(gate_p: float) -> Gate:
+    """The innovation gate of a service at ``gate_p`` (:func:`gated`) for the step policy."""
+    return functools.partial(gated, gate_p=gate_p)
 
 
 @functools.lru_cache(maxsize=1024)

@@ -74,15 +74,16 @@ class EstimatorService:
         self.zenoh_cfg = zenoh_config(config.listen, config.connect, config.zenoh_config_file)
         self.zenoh = zenoh.open(self.zenoh_cfg)
         self._pubs: dict[str, Any] = {}
+        self._stop = threading.Event()
+        self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
+        # every field a callback reads exists before the first callback can run
         self._decls = [
             *(self.zenoh.declare_subscriber(keys.wildcard(k), self._on_sample) for k in keys.INPUTS),
             *(self.zenoh.declare_queryable(keys.wildcard(q), self._on_query) for q in keys.QUERIES),
             self.zenoh.declare_queryable(keys.sessions_key(config.service_id), self._on_list),
         ]
-        self._stop = threading.Event()
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
-        self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
         self._fleet = self.zenoh.liveliness().declare_subscriber(
             keys.liveliness_key("*"), self._on_token, history=True
         )
@@ -212,12 +213,16 @@ class EstimatorService:
         elif blimp:
             self._publish(blimp, "error", msg)
 
+    def _count_oversized(self) -> None:
+        with self._lock:  # zenoh calls back from several threads
+            self.oversized += 1
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         blimp, kind, extra = keys.parse_key(str(sample.key_expr))
         if blimp is None or not self._owns(blimp):
             return
         if len(sample.payload) > MAX_PAYLOAD:  # before anything is queued or created
-            self.oversized += 1
+            self._count_oversized()
             self._refuse(
                 blimp, kind, f"payload of {len(sample.payload)} bytes exceeds the {MAX_PAYLOAD}-byte cap"
             )
@@ -238,7 +243,7 @@ class EstimatorService:
             return
         size = len(query.payload) if query.payload is not None else 0
         if size > MAX_PAYLOAD:
-            self.oversized += 1
+            self._count_oversized()
             self._refuse(blimp, kind, f"payload of {size} bytes exceeds the {MAX_PAYLOAD}-byte cap", query)
             return
         session = self.session(blimp, create=kind == "reset")

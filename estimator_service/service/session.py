@@ -20,8 +20,9 @@ import numpy as np
 
 from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
+from estimator_service.filters.policy import batchable, step_one, update_many
 from estimator_service.service.inbox import BATCH, Inbox, Job
-from estimator_service.service.limits import ControlLog, Limits, gated, gated_step
+from estimator_service.service.limits import ControlLog, Limits, gate_for, gated_step
 from estimator_service.service.protocol import (
     MSGPACK,
     PROTOCOL_VERSION,
@@ -118,7 +119,7 @@ class Session:
     @property
     def batch_key(self) -> int | None:
         """Sessions with the same key can be stepped in one batched call (None: cannot)."""
-        return id(self._filter) if hasattr(self._filter, "step_many") else None
+        return id(self._filter) if batchable(self._filter) else None
 
     def drain(self) -> None:
         """Run up to :data:`~estimator_service.service.inbox.BATCH` pending inputs (one
@@ -220,14 +221,6 @@ class Session:
         self._rng = np.random.default_rng(seed)
         self._belief = self._filter.initial(belief, self._rng)
 
-    def _predict(self, belief: Any, u: np.ndarray) -> Any:
-        return self._filter.predict(belief, u, self._rng)
-
-    def _update(self, prior: Any, z: np.ndarray, valid: np.ndarray) -> tuple[Any, StepInfo]:
-        if not valid.any():
-            return prior, StepInfo()
-        return self._filter.update(prior, z, valid, self._rng)
-
     def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
         """Adopt the new belief (only after everything succeeded) and encode it (the caller
         replies with it and publishes it)."""
@@ -284,24 +277,22 @@ class Session:
         self.gated += info.gated
         return self._commit(belief, info, s.seq, s.t, t0)
 
-    def _gate(self, belief: Any, info: StepInfo, prior: Any) -> tuple[Any, StepInfo]:
-        """The prior instead of an update whose innovation fails the gate (counted)."""
-        if not gated(info, self.settings.limits.gate_p):
-            return belief, info
-        self.gated += 1
-        return prior, info.refused()
-
     def _camera(self, c) -> bytes:
         t0 = time.perf_counter()
         self._check_time(c.t)
-        belief = self._belief
+        belief, info = self._belief, StepInfo()
         dt = self.settings.system.dt
         n = 0 if self.t is None else round((c.t - self.t) / dt)
         delay = self.settings.system.control_delay  # a command acts that long after it is sent
-        for i in range(n):  # predict to the frame's time with the controls then in force
-            belief = self._predict(belief, self._control_at(self.t + i * dt - delay))
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
-        belief, info = self._gate(*self._update(belief, z, valid), belief)
+        gate, none = gate_for(self.settings.limits.gate_p), np.zeros_like(valid)
+        for i in range(n):  # predict to the frame's time with the controls then in force; read at the last
+            u = self._control_at(self.t + i * dt - delay)
+            read = valid if i == n - 1 else none
+            belief, info = step_one(self._filter, belief, u, z, read, self._rng, gate)
+        if n == 0:  # a frame at the belief's own time: the update alone
+            belief, info = update_many(self._filter, [belief], z[None], valid[None], gate, self._rng)[0]
+        self.gated += info.gated
         return self._commit(belief, info, c.seq, c.t, t0)
 
     def _control_at(self, t: float) -> np.ndarray:
