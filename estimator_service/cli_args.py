@@ -105,7 +105,8 @@ def add_quiet(p: argparse.ArgumentParser) -> None:
 
 
 def add_calibration_options(p: argparse.ArgumentParser) -> None:
-    """``--calibration-folds`` and ``--calibration-condition-only`` (defaults: ``TrainSettings``')."""
+    """``--calibration-folds`` and ``--calibration-refit`` / ``--calibration-condition-only``
+    (defaults: ``TrainSettings``')."""
     from estimator_service.crossfit import MAX_FOLDS
     from estimator_service.training import TrainSettings
 
@@ -114,17 +115,22 @@ def add_calibration_options(p: argparse.ArgumentParser) -> None:
         help="calibration folds: blocks spread over a single log, or with several logs each of the first "
         "FOLDS logs held out whole in turn",
     )  # fmt: skip
-    p.add_argument(
-        "--calibration-condition-only", action="store_true",
+    refit = p.add_mutually_exclusive_group()
+    refit.add_argument(
+        "--calibration-refit", dest="calibration_refit", action="store_true",
+        default=TrainSettings.calibration_refit,
+        help="each fold learns its own hyperparameters (one more fit per fold and kind)",
+    )  # fmt: skip
+    refit.add_argument(
+        "--calibration-condition-only", dest="calibration_refit", action="store_false",
         help="folds keep the final models' hyperparameters and are only conditioned on their data "
-        "(much cheaper; beliefs come out less honest on new flights)",
+        "(the default)",
     )  # fmt: skip
 
 
 def calibration_options(args: argparse.Namespace) -> dict[str, Any]:
     """``TrainSettings`` keyword arguments from :func:`add_calibration_options`' arguments."""
-    refit = not args.calibration_condition_only
-    return {"calibration_folds": args.calibration_folds, "calibration_refit": refit}
+    return {"calibration_folds": args.calibration_folds, "calibration_refit": args.calibration_refit}
 
 
 def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = False) -> None:

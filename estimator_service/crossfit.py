@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +28,8 @@ from numpy.typing import NDArray
 
 from estimator_service.calibrate import calibrate_all, calibration_rows, geometric_mean, write_calibration
 from estimator_service.flight import Flight
-from estimator_service.matching import Block, adaptation_helps, choose_by_likelihood
-from estimator_service.models.calibration import NoiseScaledObservation, read_details, read_process_ceiling
+from estimator_service.matching import Block, Setting, adaptation_helps, choose_by_likelihood
+from estimator_service.models.calibration import read_details, read_process_ceiling
 from estimator_service.store import seal
 from estimator_service.system import System
 
@@ -141,15 +141,13 @@ def cross_fit(
         scale = geometric_mean(matched[k], axis=0)
         m = blocks[k][0].observation.obs_dim
         ob = geometric_mean(obs[k], axis=0) if obs[k][0] is not None else np.ones(m)
-        scaled = [replace(b, observation=NoiseScaledObservation(b.observation, ob)) for b in blocks[k]]
-        choice = choose_by_likelihood(scaled, blocks[k], scale)
+        choice = choose_by_likelihood(blocks[k], scale, ob)
         matched_family = choice.applied and choice.family == "matched"
         f = choice.factor if choice.applied else 1.0
         process[k] = (scale if matched_family else np.ones_like(scale)) * f
         observation[k] = ob * f if matched_family else np.ones(m)
         plain = choice.chosen if choice.applied else choice.uncalibrated
-        used = (scaled, scale, f, f) if matched_family else (blocks[k], np.ones_like(scale), f, 1.0)
-        adaptive[k], scores = adaptation_helps(*used, plain)
+        adaptive[k], scores = adaptation_helps(blocks[k], Setting(process[k], observation[k]), plain)
         chosen[k] = {"likelihood": {**choice.details(), "adaptive": scores.as_dict()}}
         levels[k] = plain.nis_level
     write_calibration(out, process, observation, chosen, levels, adaptive=adaptive, fold_details=details,

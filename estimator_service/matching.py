@@ -39,16 +39,19 @@ __all__ = [
     "Block",
     "HeldOut",
     "LikelihoodChoice",
+    "Setting",
     "adaptation_helps",
     "choose_by_likelihood",
     "coverage",
     "coverage_curve",
     "covering_factor",
     "held_out",
+    "held_out_settings",
     "leverage",
     "match_scales",
     "nis_level",
     "track_block",
+    "track_settings",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -83,37 +86,84 @@ class Block:
     obs_floor: FloatArray | None = None
 
 
-def track_block(
-    block: Block, scale: FloatArray, factor: float = 1.0, obs_factor: float | None = None,
-    adapt_reference: float | None = None,
-) -> TrackResult | None:  # fmt: skip
-    """The plain EKF over the block (the adaptive one would hide what is calibrated here;
-    with ``adapt_reference`` the adaptive one referred to that NIS/dof level), its process
-    noise scaled by ``scale * factor (n,)`` (capped at the block's ceiling) and its
-    observation noise by ``obs_factor`` (default ``factor``); None when the filter's
-    covariance blew up (not finite, or at some step no longer factorable, which the filter
-    flags as divergence and carries on), which the callers count as a block the scales do
-    not cover."""
+@dataclass(frozen=True)
+class Setting:
+    """Noise scales tried on a block: on its raw models' process variance ``process (n,)``
+    and observation variance ``observation (m,)``; the block's ceiling and floors apply
+    after them, as they will in the filter."""
+
+    process: FloatArray
+    observation: FloatArray
+
+    @classmethod
+    def of(
+        cls, block: Block, process: float | FloatArray = 1.0, observation: float | FloatArray = 1.0
+    ) -> Setting:
+        n, m = block.prediction.state_dim, block.observation.obs_dim
+        return cls(
+            np.broadcast_to(process, (n,)).astype(float), np.broadcast_to(observation, (m,)).astype(float)
+        )
+
+
+def track_settings(
+    block: Block, settings: Sequence[Setting], adapt_reference: float | None = None
+) -> list[TrackResult | None]:
+    """The plain EKF over the block under each of ``settings`` (the adaptive one would hide
+    what is calibrated here; with ``adapt_reference`` the adaptive one referred to that
+    NIS/dof level), all tracked side by side in one batched run
+    (:func:`~estimator_service.tracking.track_many`); None for a setting whose covariance
+    blew up (not finite, or at some step no longer factorable, which the filter flags as
+    divergence and carries on), which the callers count as a block the scales do not
+    cover. Equal to tracking each setting alone up to the rounding of a batched call."""
+    from estimator_service.models.calibration import RowMismatch
+
+    try:
+        return _track(block, settings, adapt_reference)
+    except RowMismatch:  # a setting's prediction was not finite: the batch lost its row order
+        return [_track(block, [s], adapt_reference)[0] for s in settings]
+
+
+def _track(
+    block: Block, settings: Sequence[Setting], adapt_reference: float | None
+) -> list[TrackResult | None]:
     from estimator_service.factory import make_filter
     from estimator_service.models.calibration import NoiseScaledObservation, NoiseScaledPrediction
-    from estimator_service.tracking import track_flight
+    from estimator_service.tracking import track_many
 
-    obs = block.observation
-    obs_factor = factor if obs_factor is None else obs_factor
-    if obs_factor != 1.0 or block.obs_floor is not None:
-        obs = NoiseScaledObservation(obs, np.full(obs.obs_dim, obs_factor), block.obs_floor)
-    pred = NoiseScaledPrediction(block.prediction, scale * factor, block.ceiling, block.process_floor)
+    rows = len(settings) > 1  # one scale per query row; a single setting scales every query
+    proc = np.stack([s.process for s in settings]) if rows else settings[0].process
+    seen = np.stack([s.observation for s in settings]) if rows else settings[0].observation
+    obs = NoiseScaledObservation(block.observation, seen, block.obs_floor)
+    pred = NoiseScaledPrediction(block.prediction, proc, block.ceiling, block.process_floor)
     adapt = {"adapt_rate": 0.0} if adapt_reference is None else {"adapt_reference": adapt_reference}
     filt = make_filter("ekf", pred, obs, system=block.flight.system, **adapt)
     try:
         with np.errstate(all="ignore"):
-            r = track_flight(filt, block.flight, rows=block.rows)
-            if not (np.isfinite(r.cov).all() and np.isfinite(r.mean).all()):
-                return None
-            np.linalg.cholesky(r.cov)  # every step's belief factorable
+            runs = track_many(filt, block.flight, len(settings), rows=block.rows)
     except np.linalg.LinAlgError:  # other errors are bugs, not a covariance blown up
-        return None
-    return r
+        return [None] * len(settings)
+    return [r if _sound(r) else None for r in runs]
+
+
+def _sound(r: TrackResult) -> bool:
+    """Every belief of the run finite and factorable."""
+    if not (np.isfinite(r.cov).all() and np.isfinite(r.mean).all()):
+        return False
+    try:
+        np.linalg.cholesky(r.cov)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
+def track_block(
+    block: Block, scale: FloatArray, factor: float = 1.0, obs_factor: float | None = None,
+    adapt_reference: float | None = None,
+) -> TrackResult | None:  # fmt: skip
+    """:func:`track_settings` of one setting: the process noise scaled by ``scale * factor
+    (n,)`` and the observation noise by ``obs_factor`` (default ``factor``)."""
+    setting = Setting.of(block, scale * factor, factor if obs_factor is None else obs_factor)
+    return track_settings(block, [setting], adapt_reference)[0]
 
 
 def match_scales(
@@ -234,9 +284,24 @@ def held_out(
     """:class:`HeldOut` of :func:`track_block` over ``blocks`` at ``scale * factor`` (and
     the observation noise times ``obs_factor``, default ``factor``; the adaptive EKF with
     ``adapt_reference``)."""
+    obs = factor if obs_factor is None else obs_factor
+    settings = [[Setting.of(b, scale * factor, obs)] for b in blocks]
+    return held_out_settings(blocks, settings, adapt_reference)[0]
+
+
+def held_out_settings(
+    blocks: Sequence[Block], settings: Sequence[Sequence[Setting]], adapt_reference: float | None = None
+) -> list[HeldOut]:
+    """:class:`HeldOut` of each setting, ``settings[i][j]`` on block ``i`` (setting ``j`` may
+    differ by block: each block's own matched scales), the settings of a block tracked side by
+    side (:func:`track_settings`)."""
+    runs = [track_settings(b, s, adapt_reference) for b, s in zip(blocks, settings, strict=True)]
+    return [_pooled([r[j] for r in runs], blocks) for j in range(len(settings[0]))]
+
+
+def _pooled(runs: Sequence[TrackResult | None], blocks: Sequence[Block]) -> HeldOut:
     from estimator_service.tracking import aggregate_rms, coverage_by_sigma, group_rms
 
-    runs = [track_block(b, scale, factor, obs_factor, adapt_reference) for b in blocks]
     if any(r is None for r in runs) or not runs:
         return HeldOut(-math.inf, math.inf, math.nan)
     steps = np.array([len(r.error) for r in runs])
@@ -271,17 +336,22 @@ class LikelihoodChoice:
 
 
 def choose_by_likelihood(
-    calibrated: Sequence[Block], raw: Sequence[Block], scale: FloatArray
+    blocks: Sequence[Block], scale: FloatArray, obs_scale: FloatArray
 ) -> LikelihoodChoice:
-    """Among :data:`LIKELIHOOD_FACTORS` on the process ``scale (n,)`` and the observation
-    scales that the ``calibrated`` blocks carry, and :data:`PROCESS_FACTORS` on the ``raw``
-    blocks' own process noise alone, the calibration with the highest held-out
+    """Among :data:`LIKELIHOOD_FACTORS` on the matched process scales ``scale (n,)`` and
+    observation scales ``obs_scale (m,)`` together, and :data:`PROCESS_FACTORS` on the
+    ``blocks``' own (raw) process noise alone, the calibration with the highest held-out
     log-likelihood of the truth that beats the raw (uncalibrated) models' and raises their
-    RMS by at most :data:`RMS_TOLERANCE`."""
-    ones = np.ones_like(scale)
-    base = held_out(raw, ones)
-    scored = {("matched", f): held_out(calibrated, scale, f) for f in LIKELIHOOD_FACTORS}
-    scored.update({("process", f): held_out(raw, ones, f, 1.0) for f in PROCESS_FACTORS})
+    RMS by at most :data:`RMS_TOLERANCE`. Every candidate of a block is tracked in one
+    batched run."""
+    keys = (
+        [("raw", 1.0)]
+        + [("matched", f) for f in LIKELIHOOD_FACTORS]
+        + [("process", f) for f in PROCESS_FACTORS]
+    )
+    settings = [[_setting(b, key, scale, obs_scale) for key in keys] for b in blocks]
+    base, *rest = held_out_settings(blocks, settings)
+    scored = dict(zip(keys[1:], rest, strict=True))
     fair = [k for k, v in scored.items() if v.mll > base.mll and v.rms <= base.rms * (1 + RMS_TOLERANCE)]
     best = max(fair or scored, key=lambda k: scored[k].mll)
     top = scored[best]
@@ -296,11 +366,17 @@ def choose_by_likelihood(
     return LikelihoodChoice(bool(fair), best[0], best[1], top, base, curve, reason)
 
 
-def adaptation_helps(blocks: Sequence[Block], scale: FloatArray, factor: float, obs_factor: float,
-                     plain: HeldOut) -> tuple[bool, HeldOut]:  # fmt: skip
+def _setting(block: Block, key: tuple[str, float], scale: FloatArray, obs_scale: FloatArray) -> Setting:
+    family, f = key
+    if family == "matched":
+        return Setting.of(block, scale * f, obs_scale * f)
+    return Setting.of(block, f, 1.0)  # "process" (and "raw" at 1)
+
+
+def adaptation_helps(blocks: Sequence[Block], setting: Setting, plain: HeldOut) -> tuple[bool, HeldOut]:
     """Whether the adaptive EKF, referred to ``plain``'s NIS/dof level, scores a higher
-    held-out log-likelihood than the ``plain`` EKF at the same noise without raising its RMS
-    by more than :data:`RMS_TOLERANCE`; and its scores."""
+    held-out log-likelihood than the ``plain`` EKF at the same noise ``setting`` without
+    raising its RMS by more than :data:`RMS_TOLERANCE`; and its scores."""
     level = plain.nis_level if math.isfinite(plain.nis_level) and plain.nis_level > 0 else 1.0
-    adaptive = held_out(blocks, scale, factor, obs_factor, adapt_reference=level)
+    adaptive = held_out_settings(blocks, [[setting] for _ in blocks], adapt_reference=level)[0]
     return adaptive.mll > plain.mll and adaptive.rms <= plain.rms * (1 + RMS_TOLERANCE), adaptive

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from estimator_service.filters import GaussianBelief, StepInfo, make_pd
-from estimator_service.filters.policy import step_one, update_many
+from estimator_service.filters.policy import step_many, update_many
 from estimator_service.flight import Flight
 from estimator_service.system import Group, System
 
@@ -141,58 +141,85 @@ def track_flight(
     The initial belief is the true first state with standard deviations ``init_std``
     (default: the blimp's 5 cm, 2 deg, 5 cm/s, 2 deg/s; a tenth of each component's spread
     in the flight for other systems). Each step predicts with the recorded control and
-    updates with the sensors that delivered a reading at the next row. ``filt`` is any
-    filter of the common interface (``initial``, ``step``, ``gaussian``).
+    updates with the sensors that delivered a reading at the next row, under the step
+    policy of :func:`~estimator_service.filters.policy.step_many`. ``filt`` is any filter
+    of the common interface (``initial``, ``step``, ``gaussian``).
     """
+    return track_many(filt, flight, 1, rng=rng, init_std=init_std, rows=rows, on_step=on_step)[0]
+
+
+def track_many(
+    filt,
+    flight: Flight,
+    count: int,
+    *,
+    rng: np.random.Generator | None = None,
+    init_std: FloatArray | None = None,
+    rows: slice = slice(None),
+    on_step: Callable[[int], None] | None = None,
+) -> list[TrackResult]:
+    """:func:`track_flight` of ``count`` beliefs side by side, all fed the flight's controls
+    and readings, in one batched filter step per row (one model call for all of them where
+    the filter batches). With models whose noise differs per query row
+    (:class:`~estimator_service.models.calibration.NoiseScaledPrediction` with ``(count, n)``
+    scales) it tracks ``count`` noise settings at the cost of little more than one; ``step_s``
+    is the wall time of a batched step."""
     fl = flight.select(np.arange(len(flight))[rows])
-    system = fl.system
     ep = fl.episode == fl.episode[0]
     n = int(np.argmin(ep)) if not ep.all() else len(fl)
     std = init_std if init_std is not None else _default_init_std(fl)
     rng = rng or np.random.default_rng(0)
-    belief = filt.initial(GaussianBelief(fl.state[0].copy(), np.diag(std**2)), rng)
+    beliefs = [filt.initial(GaussianBelief(fl.state[0].copy(), np.diag(std**2)), rng) for _ in range(count)]
     valid_all = fl.expand_valid()
-    means, covs, nis, dof, div = [], [], [], [], []
+    means, covs = np.empty((count, max(n - 1, 0), fl.state.shape[1])), None
+    nis, dof = np.full((count, max(n - 1, 0)), np.nan), np.zeros((count, max(n - 1, 0)), np.int64)
+    div = np.zeros((count, max(n - 1, 0)), bool)
+    ones = np.ones((count, 1))
     t0 = time.perf_counter()
     for k in range(n - 1):
-        belief, info = step_one(filt, belief, fl.control[k], fl.z[k + 1], valid_all[k + 1], rng)
-        info = info if isinstance(info, StepInfo) else StepInfo()
+        u, z, valid = ones * fl.control[k], ones * fl.z[k + 1], ones.astype(bool) & valid_all[k + 1]
+        out = step_many(filt, beliefs, u, z, valid, rng=rng)
         if fl.extra is not None:
-            belief, info = _extra_updates(filt, belief, info, fl, k + 1, rng)
-        g = filt.gaussian(belief)
-        means.append(g.mean)
-        covs.append(g.cov)
-        nis.append(info.nis)
-        dof.append(info.dof)
-        div.append(info.diverged)
+            out = _extra_updates(filt, out, fl, k + 1, rng)
+        beliefs = [b for b, _ in out]
+        gs = [filt.gaussian(b) for b in beliefs]
+        if covs is None:
+            covs = np.empty((count, max(n - 1, 0), *gs[0].cov.shape))
+        for i, (g, (_, info)) in enumerate(zip(gs, out, strict=True)):
+            means[i, k], covs[i, k] = g.mean, g.cov
+            nis[i, k], dof[i, k], div[i, k] = info.nis, info.dof, info.diverged
         if on_step:
             on_step(k + 1)
     step_s = (time.perf_counter() - t0) / max(1, n - 1)
-    return TrackResult(
-        np.array(means),
-        np.array(covs),
-        fl.state[1:n],
-        np.array(nis),
-        np.array(dof, dtype=np.int64),
-        np.array(div),
-        step_s,
-        system,
-        None if fl.exact is None else fl.exact[1:n],
-    )
+    if covs is None:
+        covs = np.empty((count, 0, fl.state.shape[1], fl.state.shape[1]))
+    exact = None if fl.exact is None else fl.exact[1:n]
+    return [TrackResult(means[i], covs[i], fl.state[1:n], nis[i], dof[i], div[i], step_s, fl.system, exact)
+            for i in range(count)]  # fmt: skip
 
 
-def _extra_updates(filt, belief, info: StepInfo, fl: Flight, row: int, rng: np.random.Generator):
-    """Update ``belief`` with the row's extra readings one after another (a sensor's second
-    and later readings within the step, :class:`~estimator_service.flight.ExtraReadings`);
-    the step's NIS and degrees of freedom add up over the updates."""
+def _extra_updates(filt, out: list, fl: Flight, row: int, rng: np.random.Generator) -> list:
+    """Update every belief of ``out`` with the row's extra readings one after another (a
+    sensor's second and later readings within the step,
+    :class:`~estimator_service.flight.ExtraReadings`); a step's NIS and degrees of freedom
+    add up over its updates."""
     extra = fl.extra
     for i in extra.at(row):
-        valid = fl.system.expand_valid(extra.valid[i])
-        belief, more = update_many(filt, [belief], extra.z[i][None], valid[None], rng=rng)[0]
-        if more.dof:
-            nis = more.nis if not info.dof else info.nis + more.nis
-            info = StepInfo(nis, info.dof + more.dof, info.diverged or more.diverged)
-    return belief, info
+        v = fl.system.expand_valid(extra.valid[i])
+        valid = np.broadcast_to(v, (len(out), v.size))
+        more = update_many(
+            filt, [b for b, _ in out], np.broadcast_to(extra.z[i], valid.shape), valid, rng=rng
+        )
+        out = [(b, _added(info, m)) for (b, m), (_, info) in zip(more, out, strict=True)]
+    return out
+
+
+def _added(info: StepInfo, more: StepInfo) -> StepInfo:
+    """A step's report after one more update ``more``: NIS and degrees of freedom add up."""
+    if not more.dof:
+        return info
+    nis = more.nis if not info.dof else info.nis + more.nis
+    return StepInfo(nis, info.dof + more.dof, info.diverged or more.diverged)
 
 
 def _default_init_std(flight: Flight) -> FloatArray:

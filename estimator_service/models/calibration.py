@@ -82,7 +82,11 @@ CEILING_FACTOR = 10.0  # the ceiling in units of each state output's variance in
 class NoiseScaledPrediction:
     """``inner`` with its noise variance multiplied by ``scale``, capped per output at
     ``ceiling (n,)`` when given and raised to ``floor (n,)`` (variances: the system's
-    process-noise floor) when given (mean and Jacobian as is)."""
+    process-noise floor) when given (mean and Jacobian as is).
+
+    ``scale`` is one number, ``(n,)``, or ``(B, n)``: one row per query row of every call,
+    which must then have ``B`` rows (``B`` noise settings tracked side by side by
+    :func:`~estimator_service.tracking.track_many`)."""
 
     __repr__ = short_repr
 
@@ -93,8 +97,8 @@ class NoiseScaledPrediction:
 
     def __post_init__(self) -> None:
         s, n = np.asarray(self.scale, dtype=np.float64), self.inner.state_dim
-        if s.ndim > 1 or (s.ndim == 1 and s.shape != (n,)) or not np.all(np.isfinite(s) & (s > 0)):
-            raise ValueError(f"noise scale must be finite and > 0, one number or {n} of them, got {s!r}")
+        if s.ndim > 2 or (s.ndim >= 1 and s.shape[-1] != n) or not np.all(np.isfinite(s) & (s > 0)):
+            raise ValueError(f"noise scale must be finite and > 0, one number, {n} or rows of {n}, got {s!r}")
         if self.ceiling is not None:
             object.__setattr__(self, "ceiling", _ceiling(self.ceiling, n))
 
@@ -110,10 +114,23 @@ class NoiseScaledPrediction:
         """``inner.predict`` with ``min(var * scale, ceiling)``: mean ``(M, n)``, var ``(M, n)``,
         jac ``(M, n, n)``."""
         out = self.inner.predict(x, u, jac=jac, var=var)
-        var_out = out.var * self.scale
+        var_out = out.var * _per_row(self.scale, out.var)
         if self.ceiling is not None:
             var_out = np.minimum(var_out, self.ceiling)
         return ModelOutput(out.mean, _floored(var_out, self.floor), out.jac)
+
+
+class RowMismatch(ValueError):
+    """A noise scale with one row per query row met a call with another number of rows."""
+
+
+def _per_row(scale: float | FloatArray, var: FloatArray) -> float | FloatArray:
+    """``scale`` checked against the call's ``var (M, k)``: a ``(B, k)`` scale needs ``M = B``."""
+    if np.ndim(scale) == 2 and np.shape(scale)[0] != var.shape[0]:
+        raise RowMismatch(
+            f"a noise scale of {np.shape(scale)[0]} rows needs as many query rows, got {var.shape[0]}"
+        )
+    return scale
 
 
 def _floored(var: FloatArray, floor: FloatArray | None) -> FloatArray:
@@ -136,8 +153,9 @@ def _ceiling(value: object, n: int) -> FloatArray:
 
 @dataclass(frozen=True)
 class NoiseScaledObservation:
-    """``inner`` with its noise variance multiplied per output by ``scale (m,)`` and raised
-    to ``floor (m,)`` (variances: the sensors' noise floors) when given."""
+    """``inner`` with its noise variance multiplied per output by ``scale (m,)`` (or ``(B,
+    m)``, one row per query row as for :class:`NoiseScaledPrediction`) and raised to ``floor
+    (m,)`` (variances: the sensors' noise floors) when given."""
 
     __repr__ = short_repr
 
@@ -147,7 +165,7 @@ class NoiseScaledObservation:
 
     def __post_init__(self) -> None:
         s = np.asarray(self.scale, dtype=np.float64)
-        if s.shape != (self.inner.obs_dim,) or not np.all(np.isfinite(s) & (s > 0)):
+        if s.ndim not in (1, 2) or s.shape[-1] != self.inner.obs_dim or not np.all(np.isfinite(s) & (s > 0)):
             raise ValueError(
                 f"observation noise scale must be {self.inner.obs_dim} finite numbers > 0, got {self.scale!r}"
             )
@@ -164,7 +182,7 @@ class NoiseScaledObservation:
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         """``inner.observe`` with ``var * scale``: mean ``(M, m)``, var ``(M, m)``, jac ``(M, m, n)``."""
         out = self.inner.observe(x, jac=jac, var=var)
-        return ModelOutput(out.mean, _floored(out.var * self.scale, self.floor), out.jac)
+        return ModelOutput(out.mean, _floored(out.var * _per_row(self.scale, out.var), self.floor), out.jac)
 
 
 def _read(folder: str | os.PathLike[str]) -> dict:
