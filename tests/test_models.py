@@ -172,3 +172,37 @@ def test_unknown_kinds_are_rejected(model_dir: Path) -> None:
 def test_filters_print_short(model_dir: Path, filter_kind: str) -> None:
     text = repr(build_filter(filter_kind, "egp", model_dir))
     assert len(text) < 1500 and "e-" not in text.split("noise_var")[0], text  # no factor values
+
+
+def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
+    """The filters evaluate only the columns some belief read (a landmark type's model only the
+    landmarks seen): every model's columns equal its whole observation's, in order, for a
+    shared sensor type, a stack placed at interleaved columns, noise scales with floors
+    (one row, and one row per query), and a model without the method (sliced)."""
+    from estimator_service.models import LinearGaussianObservation
+    from estimator_service.models.base import observe_columns
+    from estimator_service.models.calibration import NoiseScaledObservation
+    from estimator_service.models.gp_models import SharedGPObservation, StackedObservationModel
+
+    rng = np.random.default_rng(3)
+    xc = rng.normal(size=(80, 4))  # state (2) and constants (2)
+    y = np.stack([np.hypot(*(xc[:, :2] - xc[:, 2:]).T), np.sin(xc[:, 0] - xc[:, 2])], axis=1)
+    gp = fit_exact(xc, y + 0.01 * rng.normal(size=y.shape), restarts=0, max_iter=20, rng=rng)
+    shared = SharedGPObservation(gp, rng.normal(size=(5, 2)))  # 5 sensors x 2 outputs
+    linear = LinearGaussianObservation(rng.normal(size=(3, 2)), np.array([0.1, 0.2, 0.3]))
+    placed = (np.array([0, 2, 3, 4, 6, 7, 8, 10, 11, 12]), np.array([1, 5, 9]))  # interleaved
+    stacked = StackedObservationModel((shared, linear), placed)
+    x = rng.normal(size=(3, 2))
+    floor = np.full(13, 0.05)
+    models = [shared, linear, stacked, NoiseScaledObservation(stacked, np.linspace(0.5, 2.0, 13), floor),
+              NoiseScaledObservation(stacked, rng.uniform(0.5, 2.0, size=(3, 13)), floor)]  # fmt: skip
+    for model in models:
+        whole = model.observe(x, jac=True)
+        for cols in (np.array([0]), np.array([1, 5]), np.array([2, 3, 8, 12]), np.arange(model.obs_dim)):
+            cols = cols[cols < model.obs_dim]
+            part = observe_columns(model, x, cols, jac=True)
+            np.testing.assert_allclose(part.mean, whole.mean[:, cols], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(
+                part.var, np.broadcast_to(whole.var, whole.mean.shape)[:, cols], rtol=1e-12
+            )
+            np.testing.assert_allclose(part.jac, whole.jac[:, cols], rtol=1e-10, atol=1e-12)

@@ -23,7 +23,7 @@ from estimator_service.filters.common import (
     nis_from_cholesky,
 )
 from estimator_service.filters.policy import step_one
-from estimator_service.models.base import ObservationModel, PredictionModel
+from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
 __all__ = ["EKF", "UKF", "sigma_weights"]
@@ -187,15 +187,17 @@ class EKF(_GaussianFilter):
         rows = np.flatnonzero(valid.any(axis=1))
         if rows.size == 0:
             return results
-        obs = self.observation.observe(np.stack([priors[i].mean for i in rows]), jac=True)
+        cols = np.flatnonzero(valid[rows].any(axis=0))  # only what some belief read is evaluated
+        obs = observe_columns(self.observation, np.stack([priors[i].mean for i in rows]), cols, jac=True)
         groups: dict[bytes, list[int]] = {}
         for j, i in enumerate(rows):
             groups.setdefault(valid[i].tobytes(), []).append(j)
         for members in groups.values():  # blimps that saw the same entries: one batched update
             j = np.array(members)
             idx = np.flatnonzero(valid[rows[j[0]]])
-            h, r_noise = obs.jac[j][:, idx], obs.var[j][:, idx]
-            r = self._wrap.obs_diff(z[rows[j]][:, idx] - obs.mean[j][:, idx], idx)
+            pos = np.searchsorted(cols, idx)  # idx among the evaluated columns
+            h, r_noise = obs.jac[j][:, pos], obs.var[j][:, pos]
+            r = self._wrap.obs_diff(z[rows[j]][:, idx] - obs.mean[j][:, pos], idx)
             mean = np.stack([priors[i].mean for i in rows[j]])
             cov = np.stack([priors[i].cov for i in rows[j]])
 
@@ -320,18 +322,20 @@ class UKF(_GaussianFilter):
             return results
         x, bad = self._sigma_batch([priors[i] for i in rows])  # (R, 2n + 1, n)
         nr, ns, n = x.shape
-        out = self.observation.observe(x.reshape(nr * ns, n), var=self.noise == "sigma")
+        cols = np.flatnonzero(valid[rows].any(axis=0))  # only what some belief read is evaluated
+        out = observe_columns(self.observation, x.reshape(nr * ns, n), cols, var=self.noise == "sigma")
         zs_all = out.mean.reshape(nr, ns, -1)
         if self.noise == "sigma":
             r_all = out.var.reshape(nr, ns, -1).mean(axis=1)
         else:
-            r_all = self.observation.observe(x[:, 0]).var
+            r_all = observe_columns(self.observation, x[:, 0], cols).var
         for j, i in enumerate(rows):
             idx = np.flatnonzero(valid[i])
+            pos = np.searchsorted(cols, idx)
             if bad[j]:  # no sigma points: the update is refused, as for a non-factorable S
                 results[i] = priors[i], StepInfo(math.nan, len(idx), True)
                 continue
-            results[i] = self._update_one(priors[i], x[j], zs_all[j][:, idx], r_all[j, idx], z[i], idx)
+            results[i] = self._update_one(priors[i], x[j], zs_all[j][:, pos], r_all[j, pos], z[i], idx)
         return results
 
     def _update_one(

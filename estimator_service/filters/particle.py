@@ -22,7 +22,7 @@ from estimator_service.filters.common import (
     normalise_log_weights,
 )
 from estimator_service.filters.policy import step_one
-from estimator_service.models.base import ObservationModel, PredictionModel
+from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
 __all__ = ["PF", "systematic_resample"]
@@ -116,8 +116,8 @@ class PF:
         idx = np.arange(self.observation.obs_dim) if valid is None else np.flatnonzero(valid)
         if idx.size == 0:
             return prior, StepInfo(ess=prior.ess)
-        out = self.observation.observe(prior.particles)
-        zs, var = out.mean[:, idx], out.var[:, idx]
+        out = observe_columns(self.observation, prior.particles, idx)  # only the sensors that read
+        zs, var = out.mean, out.var
         zi = np.asarray(z, dtype=np.float64)[idx]
         r = self._wrap.obs_diff(zi - zs, idx)
         loglik = -0.5 * np.sum(r * r / var + np.log(2 * math.pi * var), axis=1)

@@ -21,6 +21,7 @@ __all__ = [
     "ObservationModel",
     "PredictionModel",
     "controls_for",
+    "observe_columns",
     "sensor_rows",
     "side_by_side",
 ]
@@ -71,6 +72,21 @@ class ObservationModel(Protocol):
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         """Observation of states ``x (M, n)``: mean, variance ``(M, m)``, Jacobian ``(M, m, n)``."""
         ...
+
+
+def observe_columns(
+    model: ObservationModel, x: FloatArray, cols: NDArray[np.intp], *, jac: bool = False, var: bool = True
+) -> ModelOutput:
+    """Columns ``cols (q,)`` (ascending) of ``model.observe(x)``: mean, variance ``(M, q)``,
+    Jacobian ``(M, q, n)``. Models with an ``observe_columns`` method evaluate only what
+    those columns need (a sensor type's model only the sensors that read, a stack of cameras
+    only the cameras that saw); any other model is evaluated whole and sliced."""
+    cols = np.asarray(cols, dtype=np.intp)
+    if hasattr(model, "observe_columns"):
+        return model.observe_columns(x, cols, jac=jac, var=var)
+    out = model.observe(x, jac=jac, var=var)
+    v = np.broadcast_to(out.var, out.mean.shape)
+    return ModelOutput(out.mean[:, cols], v[:, cols], None if out.jac is None else out.jac[:, cols])
 
 
 def controls_for(u: FloatArray, m: int) -> FloatArray:

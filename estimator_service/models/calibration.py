@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.files import atomic_write_text
-from estimator_service.models.base import ModelOutput, ObservationModel, PredictionModel
+from estimator_service.models.base import ModelOutput, ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
 __all__ = [
@@ -183,6 +183,14 @@ class NoiseScaledObservation:
         """``inner.observe`` with ``var * scale``: mean ``(M, m)``, var ``(M, m)``, jac ``(M, m, n)``."""
         out = self.inner.observe(x, jac=jac, var=var)
         return ModelOutput(out.mean, _floored(out.var * _per_row(self.scale, out.var), self.floor), out.jac)
+
+    def observe_columns(self, x: FloatArray, cols: NDArray[np.intp], *, jac: bool = False,
+                        var: bool = True) -> ModelOutput:  # fmt: skip
+        """Columns ``cols`` of :meth:`observe`, evaluating only what the inner model needs."""
+        out = observe_columns(self.inner, x, cols, jac=jac, var=var)
+        scale = _per_row(self.scale, out.var)[..., cols]
+        floor = None if self.floor is None else self.floor[cols]
+        return ModelOutput(out.mean, _floored(out.var * scale, floor), out.jac)
 
 
 def _read(folder: str | os.PathLike[str]) -> dict:

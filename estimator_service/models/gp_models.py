@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.gp.base import GPModel
-from estimator_service.models.base import ModelOutput, controls_for, sensor_rows, side_by_side
+from estimator_service.models.base import (
+    ModelOutput,
+    controls_for,
+    observe_columns,
+    sensor_rows,
+    side_by_side,
+)
 from estimator_service.reprs import short_repr
 
 __all__ = ["GPObservationModel", "GPPredictionModel", "SharedGPObservation", "StackedObservationModel"]
@@ -84,10 +91,20 @@ class SharedGPObservation:
         object.__setattr__(self, "obs_dim", s * self.gp.output_dim)
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
-        s = len(self.constants)
-        p = self.gp.predict(
-            np.concatenate(sensor_rows(x, self.constants), axis=1), return_var=var, return_jac=jac
-        )
+        return self._sensors(x, self.constants, jac, var)
+
+    def observe_columns(self, x: FloatArray, cols: NDArray[np.intp], *, jac: bool = False,
+                        var: bool = True) -> ModelOutput:  # fmt: skip
+        """Columns ``cols`` of :meth:`observe`, evaluating only the sensors they belong to."""
+        size = self.gp.output_dim
+        used = np.unique(cols // size)
+        out = self._sensors(x, self.constants[used], jac, var)
+        pos = np.searchsorted(used, cols // size) * size + cols % size
+        return ModelOutput(out.mean[:, pos], out.var[:, pos], None if out.jac is None else out.jac[:, pos])
+
+    def _sensors(self, x: FloatArray, constants: FloatArray, jac: bool, var: bool) -> ModelOutput:
+        s = len(constants)
+        p = self.gp.predict(np.concatenate(sensor_rows(x, constants), axis=1), return_var=var, return_jac=jac)
         v = p.var if p.var is not None else np.zeros_like(p.mean)
         j = None if p.jac is None else side_by_side(p.jac[:, :, : self.state_dim], s)
         return ModelOutput(side_by_side(p.mean, s), side_by_side(v, s), j)
@@ -119,6 +136,29 @@ class StackedObservationModel:
             if sizes != [p.obs_dim for p in self.parts] or not np.array_equal(np.sort(cols), np.arange(m)):
                 raise ValueError("stacked observation models' columns must cover the observation once")
             object.__setattr__(self, "_order", np.argsort(cols))  # part-major -> observation order
+
+    def observe_columns(self, x: FloatArray, cols: NDArray[np.intp], *, jac: bool = False,
+                        var: bool = True) -> ModelOutput:  # fmt: skip
+        """Columns ``cols`` of :meth:`observe`, evaluating only the parts (and, through
+        :func:`~estimator_service.models.base.observe_columns`, the sensors) they need."""
+        picked, where = [], []
+        for part, place in zip(self.parts, self._placement(), strict=True):
+            hit = np.flatnonzero(np.isin(place, cols))  # the part's own columns that are asked for
+            if hit.size:
+                picked.append(observe_columns(part, x, hit, jac=jac, var=var))
+                where.append(place[hit])
+        order = np.argsort(np.concatenate(where))  # into ascending observation columns
+        mean = np.concatenate([o.mean for o in picked], axis=1)[:, order]
+        v = np.concatenate([np.broadcast_to(o.var, o.mean.shape) for o in picked], axis=1)[:, order]
+        j = np.concatenate([o.jac for o in picked], axis=1)[:, order] if jac else None
+        return ModelOutput(mean, v, j)
+
+    def _placement(self) -> list[NDArray[np.intp]]:
+        """Each part's observation columns."""
+        if self.columns is not None:
+            return [np.asarray(c, dtype=np.intp) for c in self.columns]
+        edges = np.cumsum([0] + [p.obs_dim for p in self.parts])
+        return [np.arange(a, b) for a, b in itertools.pairwise(edges)]
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         outs = [p.observe(x, jac=jac, var=var) for p in self.parts]  # a few cameras or types
