@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import sys
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from estimator_service.cli_args import (
     package_version,
     seed,
 )
+from estimator_service.files import json_text
 from estimator_service.progress import ProgressBar
 
 __all__ = ["main"]
@@ -81,7 +81,7 @@ def _train_agent(args: argparse.Namespace) -> int:
         tensorboard=args.tensorboard,
     )
     print(f"wrote {path} and {args.out / 'learning_curve.png'}")
-    print(json.dumps({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
+    print(json_text({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
     return 0
 
 
@@ -92,7 +92,7 @@ def _eval_agent(args: argparse.Namespace) -> int:
         result = evaluate_agent(
             args.agent, episodes=args.episodes, seed=args.seed, on_episode=bar.update_to, models=args.models
         )
-    print(json.dumps(result))
+    print(json_text(result))
     return 0
 
 

@@ -7,5 +7,9 @@ from estimator_service.cli import main
 
 argv = sys.argv[1:]
 raise SystemExit(
-    main(["serve", *argv] if argv and argv[0].startswith("--") and argv[0] != "--version" else argv)
+    main(
+        ["serve", *argv]
+        if argv and argv[0].startswith("--") and argv[0] not in ("--version", "--help")
+        else argv
+    )
 )

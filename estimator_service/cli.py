@@ -11,7 +11,6 @@ log (``--events``) or a ROS bag (``--topics MAPPING.json``), the last three desc
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -29,11 +28,12 @@ from estimator_service.cli_args import (
     package_version,
     seed,
 )
+from estimator_service.files import json_text
 from estimator_service.progress import ProgressBar
 
 __all__ = ["add_train_track", "main", "run_track", "run_train"]
 
-USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError)
+USER_ERRORS = (ValueError, OSError)  # a bad value; a file or folder missing, unwritable, in the way
 
 
 def _system(args: argparse.Namespace):
@@ -120,7 +120,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     seconds = {k: round(v, 1) for k, v in timings.items()}
     print(
-        json.dumps(
+        json_text(
             {"models": str(args.out), "train_seconds": seconds, "calibration": calibration_choices(args.out)}
         )
     )
@@ -145,7 +145,7 @@ def run_track(args: argparse.Namespace) -> int:
         plot_tracking(result, args.plot, title=title)
         plot_normalised(result, normalised_path(args.plot), title=f"{title}: normalised errors")
         print(f"wrote {args.plot} and {normalised_path(args.plot)}")
-    print(json.dumps({k: round(v, 4) for k, v in scores.items()}))
+    print(json_text({k: round(v, 4) for k, v in scores.items()}))
     return 0
 
 
@@ -221,10 +221,42 @@ def build_parser(prog: str = "python -m estimator_service") -> Parser:
 def run(args: argparse.Namespace, prog: str) -> int:
     """Run a parsed command; a user's mistake (bad file, bad value) is one line, exit code 2."""
     try:
+        _check_outputs(args)
         return int(args.func(args))
     except USER_ERRORS as exc:
-        print(f"{prog} {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{prog} {args.command}: error: {_said(exc)}", file=sys.stderr)
         return 2
+
+
+OUTPUT_OPTIONS = ("out", "plot")  # the options that name a file or folder a command writes
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Before any work: every output path's nearest existing ancestor is a folder (else the
+    run would end, after its work, unable to write)."""
+    for name in OUTPUT_OPTIONS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        for parent in Path(value).absolute().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise NotADirectoryError(
+                        20, f"cannot write --{name} {value}: not a directory", str(parent)
+                    )
+                break
+
+
+def _said(exc: Exception) -> str:
+    """A user error in one line: a file system error names the path and what is wrong."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        hint = (
+            " (a folder on the path is a file)"
+            if isinstance(exc, (FileExistsError, NotADirectoryError))
+            else ""
+        )
+        return f"{exc.filename}: {exc.strerror.lower()}{hint}"
+    return str(exc)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -53,8 +53,16 @@ class Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the description's line breaks and appends ``(default: ...)`` to option help."""
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's line breaks and appends ``(default: X)`` to an option's help
+    once: not where the help already names its default, not for a required option, a flag
+    or an option whose default is nothing (None, an empty string)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        quiet = (action.required or action.default in (None, "", False, argparse.SUPPRESS)
+                 or "default" in text or action.nargs == 0 or not action.option_strings)  # fmt: skip
+        return text if quiet else f"{text} (default: %(default)s)"
 
 
 def checked_int(low: int | None = None, high: int | None = None) -> Callable[[str], int]:

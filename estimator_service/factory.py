@@ -49,6 +49,7 @@ __all__ = [
     "adaptation_defaults",
     "apply_calibration",
     "build_filter",
+    "folder_kinds",
     "load_models",
     "load_parametric",
     "make_filter",
@@ -148,6 +149,21 @@ def observation_files(system: System, kind: str) -> dict[str, str]:
     return {part: f"observation_{kind}_{part}.npz" for part in observation_parts(system)}
 
 
+def folder_kinds(folder: str | os.PathLike[str], system: System) -> list[str]:
+    """The model kinds a trained folder holds, in :data:`MODEL_KINDS` order: ``param`` where
+    it has the parametric models, a GP kind where it has its prediction model (and, for the
+    enhanced kinds, the parametric models they refine)."""
+    folder = Path(folder)
+    param = (folder / (PARAMETRIC_FILE if system.parametric == "blimp" else USER_MODELS_FILE)).exists()
+    param = param and system.has_parametric
+    held = {k for k in MODEL_KINDS if k != "param" and (folder / f"prediction_{k}.npz").exists()}
+    return [
+        k
+        for k in MODEL_KINDS
+        if (k == "param" and param) or (k in held and (param or k not in ENHANCED_KINDS))
+    ]
+
+
 def load_models(
     model_dir: str | os.PathLike[str], kind: str, *, calibrated: bool = True, check: bool = True
 ) -> tuple[PredictionModel, ObservationModel]:
@@ -165,6 +181,11 @@ def load_models(
     if check:
         check_folder(folder)
     system = read_system(folder)
+    if kind not in (present := folder_kinds(folder, system)):
+        have = ", ".join(present) or "none"
+        raise ValueError(
+            f"model folder {folder} has no {kind!r} models (it has: {have}); choose one with --model"
+        )
     n = system.state_dim
     param = load_parametric(folder, system) if kind == "param" or kind in ENHANCED_KINDS else None
     if param is not None and kind == "param":

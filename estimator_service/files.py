@@ -11,6 +11,8 @@ into the same folder removes once it is an hour old (:func:`remove_stale_temps`)
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import tempfile
 import time
@@ -26,6 +28,7 @@ __all__ = [
     "atomic_write",
     "atomic_write_text",
     "current_umask",
+    "json_text",
     "remove_stale_temps",
 ]
 
@@ -94,3 +97,22 @@ def remove_stale_temps(folder: str | os.PathLike[str], older_than_s: float = 0.0
         except FileNotFoundError:
             continue
     return removed
+
+
+def json_text(obj: object, indent: int | None = None) -> str:
+    """``obj`` as standard JSON: a non-finite float (NaN, +-inf: "not measured here") becomes
+    ``null`` instead of the bare ``NaN`` that ``json.dumps`` writes and JSON parsers refuse;
+    numpy scalars and arrays become numbers and lists."""
+    return json.dumps(_finite_or_null(obj), indent=indent, allow_nan=False)
+
+
+def _finite_or_null(obj: object) -> object:
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    if hasattr(obj, "tolist") and not isinstance(obj, (str, bytes)):  # numpy scalars and arrays
+        return _finite_or_null(obj.tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj

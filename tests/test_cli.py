@@ -3,6 +3,7 @@ traceback; defaults in --help; --version."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -68,6 +69,59 @@ def test_help_shows_the_same_defaults_everywhere(capsys) -> None:
         assert "(default: ekf)" in text and "(default: gp)" in text and "(default: 2000)" in text
 
 
+def test_help_names_each_default_once_and_no_empty_default(capsys) -> None:
+    """Every command's --help: no ``(default: None)`` or ``(default: False)``, no option whose
+    help names its default twice, and required options without a default."""
+    import re
+
+    from agents.cli import build_parser
+
+    parser = build_parser()
+    commands = parser._subparsers._group_actions[0].choices
+    assert {"train", "track", "serve", "router", "collect", "train-agent"} <= set(commands)
+    for name, sub in commands.items():
+        text = sub.format_help()
+        assert "(default: None)" not in text and "(default: False)" not in text, name
+        assert "(default: )" not in text, name
+        for block in re.split(r"\n  (?=-)", text):  # one option's help per block
+            assert len(re.findall(r"\bdefault\b", block)) <= 1, (name, block)
+
+
+def test_python_m_estimator_service_help_lists_its_commands() -> None:
+    """``python -m estimator_service --help`` is the command list, not serve's options."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "estimator_service", "--help"], capture_output=True,
+                         text=True, timeout=60, check=True).stdout  # fmt: skip
+    assert out.startswith("usage: python -m estimator_service") and "{serve,router,train,track}" in out
+
+
+def test_json_output_has_no_bare_nan() -> None:
+    """Command output is standard JSON: NaN and infinities (nothing measured) are null."""
+    import json
+
+    import numpy as np
+
+    from estimator_service.files import json_text
+
+    text = json_text(
+        {"nis": float("nan"), "rms": np.float64(1.5), "v": np.array([np.inf, 2.0]), "k": [1, None]}
+    )
+    assert json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c}")) == {
+        "nis": None, "rms": 1.5, "v": [None, 2.0], "k": [1, None]}  # fmt: skip
+
+
+def test_rl_experiment_never_writes_the_committed_results_by_default() -> None:
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "agents.experiments.rl", "--help"], capture_output=True,
+                         text=True, timeout=120, check=True).stdout  # fmt: skip
+    block = next(b for b in re.split(r"\n  (?=-)", out) if b.startswith("--out"))
+    assert "(default: out/rl)" in block, block
+
+
 def test_version(capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         gpbf(["--version"])
@@ -85,3 +139,54 @@ def test_progress_is_one_display_with_periodic_plain_lines_off_a_terminal() -> N
             bar.update_to(k + 1)
     lines = out.getvalue().splitlines()
     assert len(lines) == 1 and lines[0].startswith("train: 1000/1000 steps (100%)") and "ETA" in lines[0]
+
+
+def test_a_model_kind_the_folder_lacks_is_named_with_the_kinds_it_has(capsys, tmp_path: Path) -> None:
+    """``serve``/``track`` with a kind the folder was not trained for: one line naming the
+    kinds the folder holds (was: the missing file's path)."""
+    import numpy as np
+
+    from tests.robot_log import write_robot_log
+
+    log, system = write_robot_log(tmp_path, np.random.default_rng(1), rows=300)
+    out = tmp_path / "models"
+    argv = ["train", str(log), "--system", str(system), "--out", str(out), "--kinds", "gp", "--points", "40"]
+    assert estimator([*argv, "--calibration-seconds", "0", "--quiet"]) == 0
+    capsys.readouterr()
+    err = _fails(capsys, ["serve", "--models", str(out), "--model", "sparse"], main=estimator)
+    assert "has no 'sparse' models (it has: gp)" in err
+    track = ["track", str(log), "--system", str(system), "--models", str(out), "--model", "sparse"]
+    _fails(capsys, track, main=estimator, needle="(it has: gp)")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["collect", "--out", "{f}/flight.npz"],
+        ["track", "flight.npz", "--plot", "{f}/plot.png"],
+        ["reproduce", "--out", "{f}/report"],
+        ["gap-sweep", "--out", "{f}/sweep"],
+        ["train-agent", "--out", "{f}/agent"],
+    ],
+)
+def test_an_output_path_through_a_file_is_one_line_before_any_work(capsys, tmp_path: Path, argv) -> None:
+    """An output path whose folder is a file fails at once, in one line naming it (was: a
+    traceback, after the work)."""
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    _fails(capsys, [a.format(f=f) for a in argv], needle=f"{f}: cannot write --")
+
+
+def test_zenoh_mistakes_are_one_line_without_rust_internals(capsys, tmp_path: Path) -> None:
+    """A bad endpoint or zenoh configuration file: one line naming it, without the Rust
+    source paths and internal structures of zenoh's message (was: a traceback)."""
+    text, json5 = tmp_path / "z.txt", tmp_path / "z.json5"
+    text.write_text("hello")
+    json5.write_text("{listen: 5}")
+    for argv, needle in (
+        (["router", "--listen", "garbage"], "endpoints ['garbage']: Endpoints must be of the form"),
+        (["router", "--zenoh-config", str(text)], f"--zenoh-config {text}: Unsupported file type"),
+        (["router", "--zenoh-config", str(json5)], "expected struct ListenConfig (line 1, column 10)"),
+    ):
+        err = _fails(capsys, argv, main=estimator, needle=needle)
+        assert ".rs:" not in err and "Message {" not in err and "Location" not in err, err

@@ -279,9 +279,15 @@ def test_hyperparameter_files_refuse_what_train_agent_cannot_honour(tmp_path: Pa
         ("x-v0:\n  learning_rate: .inf\n", "learning_rate must be"),
         ('x-v0:\n  learning_rate: "3e-4"\n', "learning_rate must be"),
         ("x-v0:\n  learning_rate: null\n", "learning_rate must be"),
+        (
+            "just some text\n",
+            "no entry for 'x-v0' \\(no mapping of env ids\\)",
+        ),  # a text file: was a KeyError
+        ("x-v0: [1, 2\n", "is not YAML"),
+        ("x-v0: 5\n", "expected a mapping"),
     ):
         bad.write_text(text)
-        with pytest.raises((ValueError, KeyError), match=match):
+        with pytest.raises(ValueError, match=match):
             load_hyperparams("ppo", "x-v0", bad)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_hyperparams("ppo", "x-v0", tmp_path / "none.yml")

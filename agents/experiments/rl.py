@@ -12,7 +12,6 @@ share of the ellipse-to-state gap the GP-belief agent closes; each target's verd
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -26,7 +25,7 @@ from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
 from agents.sim import collect_flight
-from estimator_service.cli_args import checked_int
+from estimator_service.cli_args import Parser, checked_int
 from estimator_service.files import atomic_write_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
@@ -181,8 +180,11 @@ def summarise(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--out", type=Path, default=Path("docs/results/rl"), help="output folder")
+    p = Parser(description=__doc__)
+    p.add_argument(
+        "--out", type=Path, default=Path("out/rl"),
+        help="output folder (the committed results: docs/results/rl, docs/results/rl_sac)",
+    )  # fmt: skip
     p.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
     p.add_argument(
         "--timesteps",

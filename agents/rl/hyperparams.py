@@ -45,9 +45,9 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> 
 
     Raises
     ------
-    FileNotFoundError, KeyError, ValueError
-        No such file, no entry for ``env_id``, or an entry with a refused or malformed key
-        (named in the message).
+    FileNotFoundError, ValueError
+        No such file; not YAML, no entry for ``env_id``, or an entry with a refused or
+        malformed key (named in the message).
     """
     import yaml
 
@@ -56,9 +56,15 @@ def load_hyperparams(algo: str, env_id: str, path: str | Path | None = None) -> 
         raise FileNotFoundError(f"hyperparameter file {str(file)!r} does not exist")
     if file.stat().st_size > MAX_FILE_BYTES:
         raise ValueError(f"hyperparameter file {str(file)!r} is over {MAX_FILE_BYTES} bytes")
-    entries = yaml.safe_load(file.read_text())
+    try:
+        entries = yaml.safe_load(file.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ValueError(f"hyperparameter file {str(file)!r} is not YAML ({type(exc).__name__})") from None
     if not isinstance(entries, dict) or env_id not in entries:
-        raise KeyError(f"{file.name}: no entry for {env_id!r}")
+        got = f"entries {sorted(map(str, entries))}" if isinstance(entries, dict) else "no mapping of env ids"
+        raise ValueError(f"hyperparameter file {str(file)!r} has no entry for {env_id!r} ({got})")
+    if not isinstance(entries[env_id], dict):
+        raise ValueError(f"{file.name}[{env_id}]: expected a mapping of hyperparameters")
     entry = dict(entries[env_id])
     for key in _REFUSED:
         if key in entry:

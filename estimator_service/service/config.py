@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import threading
 from collections.abc import Callable
@@ -10,12 +11,38 @@ from pathlib import Path
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "describe", "serve_until_stopped", "zenoh_config"]
+__all__ = ["DEFAULT_ENDPOINT", "describe", "serve_until_stopped", "zenoh_config", "zenoh_message"]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
+_RUST_PLACE = re.compile(r"\s+at /\S+\.rs:\d+\.?")  # " at /root/.cargo/.../endpoint.rs:615."
+_WRAPPED = re.compile(  # Json5Err(Message { msg: "...", location: Some(Location { line: 1, column: 10 }) })
+    r'(?:\w+Err\()?Message \{ msg: "(?P<msg>.*?)", location: '
+    r"(?:Some\(Location \{ line: (?P<line>\d+), column: (?P<col>\d+) \}\)|None) \}\)?"
+)
+
+
+def _plain(m: re.Match) -> str:
+    where = f" (line {m['line']}, column {m['col']})" if m["line"] else ""
+    return m["msg"].rstrip(".:") + where
+
+
+def zenoh_message(exc: BaseException) -> str:
+    """A zenoh error as a user reads it: without Rust source paths and internal structures."""
+    return _WRAPPED.sub(_plain, _RUST_PLACE.sub("", str(exc))).strip()
+
+
 def zenoh_config(listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = None) -> zenoh.Config:
+    """:func:`_config`; a bad endpoint or configuration file is a ValueError naming it."""
+    try:
+        return _config(listen, connect, file)
+    except zenoh.ZError as exc:
+        where = f"--zenoh-config {file}" if file is not None else f"endpoints {[*listen, *connect]}"
+        raise ValueError(f"{where}: {zenoh_message(exc)}") from None
+
+
+def _config(listen, connect, file: Path | None) -> zenoh.Config:
     """Peer mode on loopback with multicast scouting off.
 
     A JSON5 ``file`` is merged onto these safe defaults: what it sets wins, but a file that

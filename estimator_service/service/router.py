@@ -15,7 +15,13 @@ from pathlib import Path
 import zenoh
 
 from estimator_service.cli_args import Parser
-from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
+from estimator_service.service.config import (
+    DEFAULT_ENDPOINT,
+    describe,
+    serve_until_stopped,
+    zenoh_config,
+    zenoh_message,
+)
 
 __all__ = ["main", "router_config"]
 
@@ -39,10 +45,10 @@ def main(argv: list[str] | None = None) -> int:
         "--zenoh-config", type=Path, default=None, help="JSON5 zenoh config merged onto the defaults"
     )
     args = p.parse_args(argv)
-    cfg = router_config(tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config)
     try:
+        cfg = router_config(tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config)
         session = zenoh.open(cfg)
-    except zenoh.ZError as exc:
-        print(f"gpbf router: error: {exc}", file=sys.stderr)
+    except (ValueError, zenoh.ZError) as exc:
+        print(f"gpbf router: error: {zenoh_message(exc)}", file=sys.stderr)
         return 2
     return serve_until_stopped("gpbf router", describe(cfg), session.close)

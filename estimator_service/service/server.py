@@ -29,7 +29,13 @@ from estimator_service.cli_args import Parser, add_filter_options, checked_int
 from estimator_service.factory import adaptation_defaults, load_models, make_filter, warm_up
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
-from estimator_service.service.config import DEFAULT_ENDPOINT, describe, serve_until_stopped, zenoh_config
+from estimator_service.service.config import (
+    DEFAULT_ENDPOINT,
+    describe,
+    serve_until_stopped,
+    zenoh_config,
+    zenoh_message,
+)
 from estimator_service.service.limits import Limits, add_limit_options, limits_from
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings
@@ -324,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         service = EstimatorService(cfg)
     except (OSError, ValueError, zenoh.ZError) as exc:
-        print(f"gpbf serve: error: {exc}", file=sys.stderr)
+        print(f"gpbf serve: error: {zenoh_message(exc)}", file=sys.stderr)
         return 2
     return serve_until_stopped(
         "gpbf serve", f"service {cfg.service_id}, {describe(service.zenoh_cfg)}", service.close
