@@ -233,11 +233,13 @@ OUTPUT_OPTIONS = ("out", "plot")  # the options that name a file or folder a com
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """Before any work: every output path's nearest existing ancestor is a folder (else the
-    run would end, after its work, unable to write)."""
+    run would end, after its work, unable to write), and ``--plot`` has matplotlib."""
     for name in OUTPUT_OPTIONS:
         value = getattr(args, name, None)
         if value is None:
             continue
+        if name == "plot":
+            _need_matplotlib()
         for parent in Path(value).absolute().parents:
             if parent.exists():
                 if not parent.is_dir():
@@ -245,6 +247,13 @@ def _check_outputs(args: argparse.Namespace) -> None:
                         20, f"cannot write --{name} {value}: not a directory", str(parent)
                     )
                 break
+
+
+def _need_matplotlib() -> None:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise ValueError("--plot needs matplotlib; install it with: pip install 'gpbf[plots]'") from None
 
 
 def _said(exc: Exception) -> str:

@@ -190,3 +190,11 @@ def test_zenoh_mistakes_are_one_line_without_rust_internals(capsys, tmp_path: Pa
     ):
         err = _fails(capsys, argv, main=estimator, needle=needle)
         assert ".rs:" not in err and "Message {" not in err and "Location" not in err, err
+
+
+def test_plot_without_matplotlib_is_one_line_before_any_work(capsys, monkeypatch, tmp_path: Path) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as in the estimator-only install
+    _fails(capsys, ["track", "f.npz", "--plot", str(tmp_path / "p.png")], main=estimator,
+           needle="--plot needs matplotlib; install it with: pip install 'gpbf[plots]'")  # fmt: skip
