@@ -110,3 +110,40 @@ def test_each_blimp_has_one_owner_and_survives_its_owner_dying(models, flight) -
         for p in procs:
             p.kill()
         router.kill()
+
+
+def test_forged_liveliness_tokens_never_join_the_fleet(models, flight) -> None:
+    """A peer that declares 100 liveliness tokens under ``gpbf/@service/*`` (the default, open
+    configuration) becomes no fleet member: existing blimps keep being served, new resets are
+    answered, the tokens are counted as unverified, and withdrawing them loses no session.
+    Before the hello handshake the tokens made the service give its blimps to fake members:
+    existing blimps got no reply, and the sessions were gone."""
+    from estimator_service.service.client import list_sessions, spawn_service
+
+    port = free_port()
+    proc, _ = spawn_service(models, port)
+    try:
+        session = open_session([f"tcp/127.0.0.1:{port}"])
+        time.sleep(0.3)
+        clients = [EstimatorClient(session, f"held{i}", timeout=3.0) for i in range(10)]
+        for c in clients:
+            c.reset(flight.state[0], STD, t=float(flight.t[0]))
+        liar = open_session([f"tcp/127.0.0.1:{port}"])
+        tokens = [liar.liveliness().declare_token(keys.liveliness_key(f"fake-{i}")) for i in range(100)]
+        time.sleep(1.5)
+        for k, c in enumerate(clients):
+            assert c.step(flight.control[0], [], float(flight.t[1]))["t"] == float(flight.t[1]), k
+        fresh = [EstimatorClient(session, f"new{i}", timeout=3.0) for i in range(10)]
+        for c in fresh:
+            c.reset(flight.state[0], STD, t=float(flight.t[0]))
+        [view] = list_sessions(session)
+        assert len(view["fleet"]) == 1 and view["count"] == 20, view["fleet"]
+        assert view["unverified_tokens"] + view["pending_tokens"] == 100
+        for t in tokens:
+            t.undeclare()
+        time.sleep(0.5)
+        assert all(c.status()["steps"] == 1 for c in clients)  # no session forgotten
+        liar.close()
+        session.close()
+    finally:
+        proc.kill()

@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 
 from agents.sim import collect_flight
-from estimator_service.service.client import EstimatorClient, NoReply, free_port, open_session, spawn_service
+from estimator_service.service import keys
+from estimator_service.service.client import (
+    EstimatorClient,
+    NoReply,
+    free_port,
+    list_sessions,
+    open_session,
+    spawn_service,
+)
+from estimator_service.service.protocol import PROTOCOL_VERSION, encode
 from estimator_service.training import TrainSettings, train_models
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,6 +71,19 @@ def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -
         with pytest.raises(NoReply):
             anonymous.reset(np.zeros(12), STD)
         assert pilot.status()["steps"] == 1  # neither changed the pilot's blimp
+        # a logged-in viewer posing as a service (its token and a correct hello answer) is refused
+        s, _ = _client(endpoint, tmp_path / "viewer.json5", "unused")
+        opened.append(s)
+        fake = "viewer-as-service"
+        hello = encode({"v": PROTOCOL_VERSION, "service": fake, "hello": True})
+        answer = s.declare_queryable(keys.hello_key(fake), lambda q: q.reply(keys.hello_key(fake), hello))
+        token = s.liveliness().declare_token(keys.liveliness_key(fake))
+        time.sleep(1.0)
+        assert pilot.step(np.zeros(3), [], 0.5)["t"] == 0.5  # still served: no new owner
+        [view] = list_sessions(s)
+        assert view["fleet"] == [view["service"]], view
+        token.undeclare()
+        answer.undeclare()
     finally:
         for s in opened:
             s.close()

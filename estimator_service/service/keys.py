@@ -20,6 +20,7 @@ __all__ = [
     "QUERIES",
     "blimp_key",
     "camera_key",
+    "hello_key",
     "liveliness_key",
     "owner",
     "parse_key",
@@ -52,6 +53,12 @@ def wildcard(kind: str) -> str:
 
 def liveliness_key(service_id: str) -> str:
     return f"{LIVELINESS_PREFIX}/{service_id}"
+
+
+def hello_key(service_id: str) -> str:
+    """``gpbf/@service/<id>/hello``: the query a service answers to be admitted to a fleet
+    (:mod:`estimator_service.service.membership`)."""
+    return f"{LIVELINESS_PREFIX}/{service_id}/hello"
 
 
 def sessions_key(service_id: str) -> str:

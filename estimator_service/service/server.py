@@ -37,6 +37,7 @@ from estimator_service.service.config import (
     zenoh_message,
 )
 from estimator_service.service.limits import Limits, add_limit_options, limits_from
+from estimator_service.service.membership import Membership
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings
 from estimator_service.service.workers import WorkerPool
@@ -82,16 +83,18 @@ class EstimatorService:
         self._pubs: dict[str, Any] = {}
         self._stop = threading.Event()
         self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
+        self._members = Membership(self.zenoh, config.service_id, self._lock, self._fleet_changed)
         # every field a callback reads exists before the first callback can run
         self._decls = [
             *(self.zenoh.declare_subscriber(keys.wildcard(k), self._on_sample) for k in keys.INPUTS),
             *(self.zenoh.declare_queryable(keys.wildcard(q), self._on_query) for q in keys.QUERIES),
             self.zenoh.declare_queryable(keys.sessions_key(config.service_id), self._on_list),
+            self.zenoh.declare_queryable(keys.hello_key(config.service_id), self._on_hello),
         ]
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
         self._fleet = self.zenoh.liveliness().declare_subscriber(
-            keys.liveliness_key("*"), self._on_token, history=True
+            keys.liveliness_key("*"), self._members.on_token, history=True
         )
         self._token = self.zenoh.liveliness().declare_token(keys.liveliness_key(config.service_id))
 
@@ -149,17 +152,17 @@ class EstimatorService:
             return s
 
     # -- the fleet ------------------------------------------------------------------------------------
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        """A service joined or left: update the view and give up the blimps now owned elsewhere."""
-        service = str(sample.key_expr).rsplit("/", 1)[-1]
+    def _fleet_changed(self, live: frozenset[str]) -> None:
+        """A verified service joined or one left (:class:`Membership`, under the lock): update
+        the view and give up the blimps now owned elsewhere."""
         with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._live = self._live | {service}
-            elif service != self.config.service_id:
-                self._live = self._live - {service}
+            self._live = live
             moved = [b for b in self._sessions if not self._owns(b)]
             for b in moved:
                 self._sessions.pop(b).stop()
+
+    def _on_hello(self, query: zenoh.Query) -> None:
+        query.reply(keys.hello_key(self.config.service_id), self._members.hello(), encoding=MSGPACK)
 
     def _owns(self, blimp: str) -> bool:
         return keys.owner(blimp, self._live) == self.config.service_id
@@ -206,7 +209,8 @@ class EstimatorService:
         body = {
             "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
-            "fleet": self.fleet(),
+            "fleet": self.fleet(), "unverified_tokens": self._members.refused,
+            "pending_tokens": self._members.pending,
         }  # fmt: skip
         # its own key, not the query's wildcard: replies of several services are not merged
         query.reply(keys.sessions_key(self.config.service_id), encode(body), encoding=MSGPACK)
