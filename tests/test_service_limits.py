@@ -217,7 +217,8 @@ def test_protocol_document_matches_the_code() -> None:
     flags = {
         "--horizon": lim.horizon_s, "--max-gap-steps": lim.max_gap_steps, "--queue-cap": lim.queue_cap,
         "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
-        "--max-sessions": lim.max_sessions,
+        "--max-sessions": lim.max_sessions, "--catch-up-share": lim.catch_up_share,
+        "--catch-up-burst": lim.catch_up_burst_s,
     }  # fmt: skip
     for flag, value in flags.items():
         assert re.search(rf"`{flag}`[^|]*\| {re.escape(format(value, 'g'))} ", doc), flag
@@ -259,3 +260,35 @@ def test_blas_threads_are_shared_out_over_the_workers(requested, workers, cores,
     from estimator_service.service.server import blas_threads_for
 
     assert blas_threads_for(requested, workers, cores) == expected
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models, flight, unbounded) -> None:
+    """Two blimps on the particle filter send chains of camera frames, each 59 s after the
+    last (inside the 60 s horizon: about 236 predictions each). The service's catch-up budget
+    refuses what it cannot afford, so a healthy blimp's lock-step steps stay fast; without it
+    (``unbounded``, the budget opened wide) the same chains stall them."""
+    wide = ("--catch-up-share", "64", "--catch-up-burst", "3600") if unbounded else ()
+    svc = Running(models, *wide)
+    try:
+        good = svc.client("healthy")
+        good.reset(flight.state[0], STD, t=float(flight.t[0]))
+        attackers = [svc.client(f"chain{j}") for j in range(2)]
+        for a in attackers:
+            a.reset(flight.state[0], STD, t=0.0, filter="pf")
+            for f in range(1, 17):
+                a.publish_camera(0, ELLIPSE, 59.0 * f)
+        time.sleep(0.3)
+        if unbounded:  # the attack works without the budget: a step waits past its 5 s timeout
+            with pytest.raises(ServiceError, match="Timeout"):
+                for k in range(20):
+                    _lock_step_ms(good, flight, k)
+            return
+        times = sorted(_lock_step_ms(good, flight, k) for k in range(20))
+        assert times[-2] < 600.0, times[-5:]
+        refused = sum(a.status()["refused_catch_up"] for a in attackers)
+        errors = [e["error"] for a in attackers for e in a.errors(wait=0.2)]
+        assert refused > 0 and any("--catch-up-share" in e for e in errors), (refused, errors[:2])
+    finally:
+        svc.proc.kill()
+        svc.session.close()

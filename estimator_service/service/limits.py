@@ -10,6 +10,8 @@ import argparse
 import bisect
 import functools
 import math
+import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +27,7 @@ __all__ = [
     "OPTIONS",
     "ControlLog",
     "Limits",
+    "WorkBudget",
     "add_limit_options",
     "gate_for",
     "gated",
@@ -62,6 +65,13 @@ class Limits:
     max_sessions
         Sessions per service; at the cap, expired sessions are closed first, otherwise a
         new blimp is refused with an error naming the cap.
+    catch_up_share, catch_up_burst_s
+        Catching up, the predictions a camera frame needs beyond the first to reach its time,
+        may use at most ``catch_up_share`` seconds of filtering per second over all sessions,
+        with bursts up to ``catch_up_burst_s`` (:class:`WorkBudget`). A frame whose catch-up
+        would cost more than is available (estimated from the session's own measured step
+        time) is refused before any work, naming the limit: frames each just inside the
+        horizon, from any number of blimps, cannot stall the others' steps.
     """
 
     horizon_s: float = 60.0
@@ -71,6 +81,8 @@ class Limits:
     gate_p: float = 1e-9
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
+    catch_up_share: float = 0.5
+    catch_up_burst_s: float = 2.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -79,6 +91,7 @@ class Limits:
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
+            "catch_up_share": self.catch_up_share > 0, "catch_up_burst_s": self.catch_up_burst_s > 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -101,7 +114,45 @@ OPTIONS = (
     ("--session-ttl", "session_ttl_s", checked_float(0.0, 1e9),
      "seconds without input after which a session is closed (0: never)"),
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
+    ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),
+     "seconds of catch-up predictions per second, over all sessions (frames beyond it: refused)"),
+    ("--catch-up-burst", "catch_up_burst_s", checked_float(0.0, 3600.0, low_open=True),
+     "seconds of catch-up predictions available at once"),
 )  # fmt: skip
+
+
+class WorkBudget:
+    """A token bucket of filtering seconds: ``rate`` seconds per second, at most ``burst``
+    at once; thread-safe. :meth:`take` reserves an estimate before work, :meth:`settle`
+    replaces it by what the work cost."""
+
+    def __init__(self, rate: float, burst: float, clock=time.monotonic) -> None:
+        self.rate, self.burst, self._clock = rate, burst, clock
+        self._tokens, self._at = burst, clock()
+        self._lock = threading.Lock()
+        self.refused = 0
+
+    def take(self, estimate_s: float) -> float | None:
+        """Reserve ``estimate_s``; None (and counted) when only less is available; else what
+        remains."""
+        with self._lock:
+            now = self._clock()
+            self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
+            self._at = now
+            if estimate_s > self._tokens:
+                self.refused += 1
+                return None
+            self._tokens -= estimate_s
+            return self._tokens
+
+    def available(self) -> float:
+        with self._lock:
+            return min(self.burst, self._tokens + (self._clock() - self._at) * self.rate)
+
+    def settle(self, estimate_s: float, actual_s: float) -> None:
+        """The work reserved at ``estimate_s`` cost ``actual_s``."""
+        with self._lock:
+            self._tokens = min(self.burst, self._tokens + estimate_s - actual_s)
 
 
 def add_limit_options(p: argparse.ArgumentParser) -> None:

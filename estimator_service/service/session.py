@@ -22,7 +22,7 @@ from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
 from estimator_service.filters.policy import batchable, step_one, update_many
 from estimator_service.service.inbox import BATCH, Inbox, Job
-from estimator_service.service.limits import ControlLog, Limits, gate_for, gated_step
+from estimator_service.service.limits import ControlLog, Limits, WorkBudget, gate_for, gated_step
 from estimator_service.service.protocol import (
     MSGPACK,
     PROTOCOL_VERSION,
@@ -48,6 +48,7 @@ class SessionSettings:
 
     system: System
     limits: Limits = field(default_factory=Limits)
+    catch_up: WorkBudget | None = None  # the service's budget of catch-up work (None: unbounded)
 
 
 @dataclass
@@ -72,10 +73,12 @@ class Session:
     late: int = 0
     batched: int = 0
     gated: int = 0
+    refused_catch_up: int = 0  # camera frames refused for the service's catch-up budget
     t: float | None = None
     pool: WorkerPool | None = None
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
     _nis: list = field(default_factory=lambda: [0.0, 0])  # running sum of NIS/dof, count
+    _step_s: float = 0.0  # this session's measured seconds per prediction step (0: not yet)
 
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
@@ -286,14 +289,41 @@ class Session:
         delay = self.settings.system.control_delay  # a command acts that long after it is sent
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
         gate, none = gate_for(self.settings.limits.gate_p), np.zeros_like(valid)
+        reserved, clock = 0.0, time.perf_counter()
         for i in range(n):  # predict to the frame's time with the controls then in force; read at the last
+            if i == 1:  # beyond the first step: catching up, within the service's budget
+                reserved = self._reserve_catch_up(n - 1, time.perf_counter() - clock)
+                clock = time.perf_counter()
             u = self._control_at(self.t + i * dt - delay)
             read = valid if i == n - 1 else none
             belief, info = step_one(self._filter, belief, u, z, read, self._rng, gate)
+        if reserved:
+            spent = time.perf_counter() - clock
+            self.settings.catch_up.settle(reserved, spent)
+            self._step_s = 0.5 * self._step_s + 0.5 * spent / (n - 1)
         if n == 0:  # a frame at the belief's own time: the update alone
             belief, info = update_many(self._filter, [belief], z[None], valid[None], gate, self._rng)[0]
         self.gated += info.gated
         return self._commit(belief, info, c.seq, c.t, t0)
+
+    def _reserve_catch_up(self, steps: int, first_s: float) -> float:
+        """Reserve ``steps`` predictions of catch-up work (estimated from this session's step
+        time; the first step's ``first_s`` before there is one) from the service's budget, or
+        refuse the input (nothing adopted, no state changed)."""
+        budget = self.settings.catch_up
+        if budget is None:
+            return 0.0
+        self._step_s = self._step_s or first_s
+        estimate = steps * self._step_s
+        if budget.take(estimate) is None:
+            self.refused_catch_up += 1
+            share = self.settings.limits.catch_up_share
+            raise ProtocolError(
+                f"field 't': catching up {steps} steps would take about {estimate:.3g} s of filtering; "
+                f"the service allows {budget.available():.3g} s now ({share:g} s per second, "
+                f"--catch-up-share); send frames as they come, or a reset"
+            )
+        return estimate
 
     def _control_at(self, t: float) -> np.ndarray:
         """The latest control at or before ``t``; older ones are forgotten."""
@@ -305,6 +335,7 @@ class Session:
         if r.filter or r.model:
             self.filter_name, self.model_name = r.filter or self.filter_name, r.model or self.model_name
             self._filter = self.make_filter(self.filter_name, self.model_name)
+            self._step_s = 0.0  # another filter: its step time is measured afresh
         self._install(GaussianBelief(r.mean, r.cov), r.seed)
         self.t, self.steps, self._nis = r.t, 0, [0.0, 0]
         self._controls.clear()
@@ -316,6 +347,7 @@ class Session:
             "v": PROTOCOL_VERSION, "blimp": self.blimp, "filter": self.filter_name, "model": self.model_name,
             "model_version": self.model_version, "steps": self.steps, "rejected": self.rejected,
             "late": self.late, "dropped": self.dropped, "gated": self.gated,
+            "refused_catch_up": self.refused_catch_up,
             "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
             "batched": self.batched, "t": self.t, "queue": len(self._inbox),
             "timings": {"count": len(self._timings), "step_ms_p50": float(np.median(ms)),
