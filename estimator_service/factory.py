@@ -179,7 +179,7 @@ def load_models(
         raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
     folder = Path(model_dir)
     if check:
-        check_folder(folder)
+        check_folder(folder, hashes=True)  # a same-size edit of a model file is refused too
     system = read_system(folder)
     if kind not in (present := folder_kinds(folder, system)):
         have = ", ".join(present) or "none"

@@ -29,6 +29,7 @@ __all__ = [
     "atomic_write_text",
     "current_umask",
     "json_text",
+    "npz_oversized",
     "remove_stale_temps",
 ]
 
@@ -116,3 +117,26 @@ def _finite_or_null(obj: object) -> object:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+MAX_ARRAY_BYTES = 2**31  # a larger array in a data or model file is refused before it is read
+
+
+def npz_oversized(npz: np.lib.npyio.NpzFile) -> str | None:
+    """Why one of ``npz``'s arrays may not be read (None when all may): its header declares
+    more than :data:`MAX_ARRAY_BYTES` or more than the member stores. Reads only the headers,
+    so a file declaring terabytes costs nothing to refuse."""
+    for info in npz.zip.infolist():
+        with npz.zip.open(info) as fh:
+            version = np.lib.format.read_magic(fh)
+            read = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read(fh)
+        declared = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+        if declared > MAX_ARRAY_BYTES or declared > info.file_size:
+            name = info.filename.removesuffix(".npy")
+            return f"array '{name}' declares {declared} bytes, more than it stores or {MAX_ARRAY_BYTES}"
+    return None

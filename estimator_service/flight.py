@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.files import atomic_savez
+from estimator_service.files import atomic_savez, npz_oversized
 from estimator_service.system import DescriptionError, System
 
 __all__ = [
@@ -276,11 +276,14 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
     where = f"flight file {os.fspath(path)!r}"
     try:
         with np.load(path, allow_pickle=False) as d:
-            data = {k: d[k] for k in d.files}
+            oversized = npz_oversized(d)
+            data = {} if oversized else {k: d[k] for k in d.files}
     except FileNotFoundError:
         raise
     except Exception as exc:
         raise FlightError(f"{where}: unreadable or truncated ({exc})") from exc
+    if oversized:
+        raise FlightError(f"{where}: {oversized} (a damaged or hostile file)")
     if "metadata" not in data:
         raise FlightError(f"{where}: missing 'metadata'")
     try:

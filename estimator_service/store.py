@@ -161,6 +161,6 @@ def check_folder(folder: str | os.PathLike[str], *, hashes: bool = False) -> dic
 
 def model_version(folder: str | os.PathLike[str]) -> str:
     """A short hash of the folder's manifest: equal for the same models, different after any
-    retrain (what the service reports as ``model_version``)."""
-    check_folder(folder)
+    retrain (what the service reports as ``model_version``); every file's hash is checked."""
+    check_folder(folder, hashes=True)
     return hashlib.sha256((Path(folder) / MANIFEST_FILE).read_bytes()).hexdigest()[:16]

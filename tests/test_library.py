@@ -180,3 +180,61 @@ def test_make_flight_checks_shapes() -> None:
     s = System.from_dict(SYSTEM)
     with pytest.raises(FlightError, match="'state' has shape"):
         make_flight(s, np.arange(3.0), np.zeros((3, 4)), np.zeros((3, 2)), np.zeros((3, 3)), np.ones((3, 2)))
+
+
+def _npz_declaring(path: Path, name: str, shape: tuple[int, ...], extra: dict | None = None) -> None:
+    """An ``.npz`` whose member ``name`` declares ``shape`` (float64) but stores 8 bytes."""
+    import io
+    import zipfile
+
+    head = io.BytesIO()
+    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr(f"{name}.npy", head.getvalue() + b"\0" * 8)
+        for k, v in (extra or {}).items():
+            buf = io.BytesIO()
+            np.save(buf, v)
+            z.writestr(f"{k}.npy", buf.getvalue())
+
+
+def test_hostile_model_and_flight_files_are_refused_by_name(tmp_path: Path) -> None:
+    """A model file edited in place at the same size is refused on load (every file's hash is
+    checked, not only on request); NaN hyperparameters, a ``__format__`` that is not one
+    integer, and an array declaring terabytes (models and flights) are one-line errors, read
+    at no cost (were: silent wrong beliefs, NaN at every step, tracebacks, MemoryError)."""
+    from estimator_service.factory import build_filter
+    from estimator_service.flight import load_flight
+    from estimator_service.gp.io import ModelFileError, load_gp
+    from estimator_service.training import TrainSettings, train_models
+
+    log, sys_file = write_robot_log(tmp_path, np.random.default_rng(1), rows=200)
+    system = System.from_json(sys_file.read_text())
+    flight = load_csv(log, system)
+    out = tmp_path / "m"
+    train_models([flight], out, kinds=["gp"], settings=TrainSettings(n_points=30, calibration_seconds=0))
+    build_filter("ekf", "gp", out)
+    path = out / "prediction_gp.npz"
+    with np.load(path) as d:
+        arrays = {k: d[k] for k in d.files}
+    size = path.stat().st_size
+    key = next(k for k, v in arrays.items() if v.dtype == np.float64 and v.ndim == 2)
+    np.savez(path, **{**arrays, key: arrays[key] * 3.0})  # the issue's same-size edit
+    assert path.stat().st_size == size
+    with pytest.raises(ModelStoreError, match=r"prediction_gp\.npz is missing or differs"):
+        build_filter("ekf", "gp", out)
+    with pytest.raises(ModelStoreError, match="differs"):
+        model_version(out)
+    theta = next(k for k in arrays if k.endswith("theta"))
+    nan = {**arrays, theta: np.full_like(arrays[theta], np.nan)}
+    np.savez(tmp_path / "nan.npz", **nan)
+    with pytest.raises(ModelFileError, match=f"'{theta}' holds NaN"):
+        load_gp(tmp_path / "nan.npz")
+    np.savez(tmp_path / "fmt.npz", **{**arrays, "__format__": np.array([1, 2])})
+    with pytest.raises(ModelFileError, match="'__format__' must be one integer"):
+        load_gp(tmp_path / "fmt.npz")
+    _npz_declaring(tmp_path / "huge.npz", "theta", (10**12,), {"__format__": np.array(1)})
+    with pytest.raises(ModelFileError, match="declares 8000000000000 bytes"):
+        load_gp(tmp_path / "huge.npz")
+    _npz_declaring(tmp_path / "huge_flight.npz", "state", (10**11, 5))
+    with pytest.raises(FlightError, match="array 'state' declares"):
+        load_flight(tmp_path / "huge_flight.npz")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.files import atomic_savez
+from estimator_service.files import atomic_savez, npz_oversized
 from estimator_service.gp.base import GPModel, Scaler
 from estimator_service.gp.circular import CircularGP
 from estimator_service.gp.enhanced import EnhancedGP, JacobianFunction, MeanFunction
@@ -81,6 +81,8 @@ def _get(data: Arrays, key: str, ndim: int, where: str) -> NDArray:
         raise ModelFileError(
             f"{where}: array '{key}' must be a {ndim}-D float array, got {arr.dtype} {arr.shape}"
         )
+    if not np.all(np.isfinite(arr)):
+        raise ModelFileError(f"{where}: array '{key}' holds NaN or infinite values")
     return np.array(arr, dtype=np.float64)
 
 
@@ -176,6 +178,9 @@ def load_gp(
     where = f"model file {os.fspath(path)!r}"
     try:
         with np.load(path, allow_pickle=False) as npz:
+            oversized = npz_oversized(npz)
+            if oversized:
+                raise ModelFileError(f"{where}: {oversized} (a damaged or hostile file)")
             data = {k: npz[k] for k in npz.files}
     except FileNotFoundError:
         raise
@@ -183,7 +188,10 @@ def load_gp(
         raise ModelFileError(f"{where}: unreadable or truncated ({exc})") from exc
     if "__format__" not in data:
         raise ModelFileError(f"{where}: no '__format__' entry (not a gpbf GP file?)")
-    version = int(data["__format__"])
+    fmt = data["__format__"]
+    if fmt.shape != () or not np.issubdtype(fmt.dtype, np.integer):
+        raise ModelFileError(f"{where}: '__format__' must be one integer, got {fmt.dtype} {fmt.shape}")
+    version = int(fmt)
     if version != FORMAT_VERSION:
         raise ModelFileError(f"{where}: format version {version}, this build reads {FORMAT_VERSION}")
     return _from_arrays(data, "", where, mean_function, mean_jacobian)
