@@ -218,10 +218,12 @@ def test_protocol_document_matches_the_code() -> None:
         "--horizon": lim.horizon_s, "--max-gap-steps": lim.max_gap_steps, "--queue-cap": lim.queue_cap,
         "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
         "--max-sessions": lim.max_sessions, "--catch-up-share": lim.catch_up_share,
+        "--queue-bytes": lim.queue_bytes, "--total-queue-bytes": lim.total_queue_bytes,
         "--catch-up-burst": lim.catch_up_burst_s,
     }  # fmt: skip
     for flag, value in flags.items():
-        assert re.search(rf"`{flag}`[^|]*\| {re.escape(format(value, 'g'))} ", doc), flag
+        shown = str(value) if isinstance(value, int) else format(value, "g")
+        assert re.search(rf"`{flag}`[^|]*\| {re.escape(shown)} ", doc), flag
 
 
 def test_one_input_costs_at_most_max_gap_steps_predictions_whatever_dt() -> None:
@@ -274,9 +276,10 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
         good = svc.client("healthy")
         good.reset(flight.state[0], STD, t=float(flight.t[0]))
         attackers = [svc.client(f"chain{j}") for j in range(2)]
-        for a in attackers:
+        for a in attackers:  # both sessions first: a reset is not the point here
             a.reset(flight.state[0], STD, t=0.0, filter="pf")
-            for f in range(1, 17):
+        for f in range(1, 17):
+            for a in attackers:
                 a.publish_camera(0, ELLIPSE, 59.0 * f)
         time.sleep(0.3)
         if unbounded:  # the attack works without the budget: a step waits past its 5 s timeout
@@ -292,3 +295,33 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
     finally:
         svc.proc.kill()
         svc.session.close()
+
+
+def test_queues_are_bounded_in_bytes_per_session_and_over_the_service() -> None:
+    """1,100 puts of 60 KB to one blimp used to queue 69 MB (the cap counted messages): a
+    session holds at most ``queue_bytes`` (the oldest dropped) and all sessions together at
+    most ``total_queue_bytes`` (a new input over it dropped itself), counted either way."""
+    from estimator_service.service.inbox import ByteMeter, Inbox
+
+    dropped: list = []
+    meter = ByteMeter(250_000)
+    boxes = [Inbox(1024, dropped.append, byte_cap=100_000, meter=meter) for _ in range(4)]
+
+    def job(n: int):
+        return ("control", b"x" * n, None, None)
+
+    for _ in range(1_100):
+        boxes[0].put(job(60_000))
+    assert boxes[0].bytes == 60_000 and len(boxes[0]) == 1 and meter.used == 60_000
+    for box in boxes[1:]:
+        for _ in range(3):
+            box.put(job(40_000))
+    assert meter.used <= 250_000 and meter.used == sum(b.bytes for b in boxes)
+    assert all(b.bytes <= 100_000 for b in boxes) and boxes[3].bytes < 80_000  # the service was full
+    # 1,099 oldest of blimp 0; one oldest of blimp 1 (its bytes); blimp 2's third and all of
+    # blimp 3's refused at the service's cap
+    assert [b.dropped for b in boxes] == [1_099, 1, 1, 3] and len(dropped) == 1_104
+    while boxes[1].take() is not None:  # served inputs give their bytes back
+        pass
+    assert meter.used == sum(b.bytes for b in boxes) == 140_000
+    assert boxes[3].put(job(40_000)) and boxes[3].bytes == 40_000 and meter.used == 180_000

@@ -50,10 +50,14 @@ class Limits:
         The same bound in filter steps: for a robot with a short ``dt`` the horizon is
         ``min(horizon_s, max_gap_steps * dt)``, so one input never costs more than this many
         predictions.
-    queue_cap
-        Pending inputs per session. Over it, the oldest pending streaming input (control
-        or camera put) is dropped and counted (``dropped`` in ``status``); a query over it
-        gets an error reply.
+    queue_cap, queue_bytes
+        Pending inputs and their payload bytes per session. Over either, the oldest pending
+        input is dropped and counted (``dropped`` in ``status``; a dropped query gets an
+        error reply).
+    total_queue_bytes
+        Payload bytes pending over all sessions of the service; an input that would pass
+        it is dropped itself (and counted), so queues cannot exhaust the memory whatever the
+        number of blimps.
     max_controls
         Streamed controls a session remembers (the latest ones); older ones are forgotten.
     gate_p
@@ -77,6 +81,8 @@ class Limits:
     horizon_s: float = 60.0
     max_gap_steps: int = 1000
     queue_cap: int = 1024
+    queue_bytes: int = 4 * 2**20
+    total_queue_bytes: int = 256 * 2**20
     max_controls: int = 256
     gate_p: float = 1e-9
     session_ttl_s: float = 600.0
@@ -87,7 +93,8 @@ class Limits:
     def __post_init__(self) -> None:
         checks = {
             "horizon_s": self.horizon_s > 0, "max_gap_steps": self.max_gap_steps >= 1,
-            "queue_cap": self.queue_cap >= 1,
+            "queue_cap": self.queue_cap >= 1, "queue_bytes": self.queue_bytes >= 1,
+            "total_queue_bytes": self.total_queue_bytes >= 1,
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
@@ -108,6 +115,10 @@ OPTIONS = (
      "filter steps an input may lie after its session's time (bounds one input's work)"),
     ("--queue-cap", "queue_cap", checked_int(1, 1_000_000),
      "pending inputs per session (over it the oldest is dropped and counted)"),
+    ("--queue-bytes", "queue_bytes", checked_int(1, 2**40),
+     "payload bytes pending per session (over it the oldest input is dropped and counted)"),
+    ("--total-queue-bytes", "total_queue_bytes", checked_int(1, 2**40),
+     "payload bytes pending over all sessions (an input over it is dropped and counted)"),
     ("--max-controls", "max_controls", checked_int(1, 1_000_000), "streamed controls a session remembers"),
     ("--gate-p", "gate_p", checked_float(0.0, 0.5),
      "innovation gate: skip an update whose NIS tail probability is below this (0: off)"),

@@ -36,6 +36,7 @@ from estimator_service.service.config import (
     zenoh_config,
     zenoh_message,
 )
+from estimator_service.service.inbox import ByteMeter
 from estimator_service.service.limits import Limits, WorkBudget, add_limit_options, limits_from
 from estimator_service.service.membership import Membership
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
@@ -75,7 +76,8 @@ class EstimatorService:
         self._version = model_version(config.model_dir)  # refuses an incomplete or mixed folder
         self.system = read_system(config.model_dir)
         budget = WorkBudget(config.limits.catch_up_share, config.limits.catch_up_burst_s)
-        self._settings = SessionSettings(self.system, config.limits, budget)
+        queued = ByteMeter(config.limits.total_queue_bytes)
+        self._settings = SessionSettings(self.system, config.limits, budget, queued)
         self.oversized = 0  # inputs refused in the zenoh callback, before any queue
         self._pool = WorkerPool(config.workers, step_together)
         self._build_filter(config.filter, config.model)  # fail fast on missing model files

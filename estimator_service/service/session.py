@@ -21,7 +21,7 @@ import numpy as np
 from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
 from estimator_service.filters.policy import batchable, step_one, update_many
-from estimator_service.service.inbox import BATCH, Inbox, Job
+from estimator_service.service.inbox import BATCH, ByteMeter, Inbox, Job
 from estimator_service.service.limits import ControlLog, Limits, WorkBudget, gate_for, gated_step
 from estimator_service.service.protocol import (
     MSGPACK,
@@ -49,6 +49,7 @@ class SessionSettings:
     system: System
     limits: Limits = field(default_factory=Limits)
     catch_up: WorkBudget | None = None  # the service's budget of catch-up work (None: unbounded)
+    queued: ByteMeter | None = None  # payload bytes queued over all sessions (None: no service-wide cap)
 
 
 @dataclass
@@ -83,7 +84,8 @@ class Session:
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
         self._controls = ControlLog(self.settings.limits.max_controls, self.settings.system.control_dim)
-        self._inbox = Inbox(self.settings.limits.queue_cap, self._dropped)
+        lim = self.settings.limits
+        self._inbox = Inbox(lim.queue_cap, self._dropped, lim.queue_bytes, self.settings.queued)
         sys_ = self.settings.system
         prior = GaussianBelief(np.array(sys_.prior_mean), np.diag(np.square(sys_.prior_std)))
         self._install(prior, self.seed)
@@ -101,7 +103,9 @@ class Session:
 
     def _dropped(self, job: Job) -> None:
         if job[2] is not None:
-            text = f"session queue full ({self._inbox.cap} inputs): dropped"
+            lim = self.settings.limits
+            text = (f"queue full (a session holds {lim.queue_cap} inputs and {lim.queue_bytes} bytes, "
+                    f"the service {lim.total_queue_bytes} bytes): dropped")  # fmt: skip
             job[2].reply_err(self._error(text, job[0]), encoding=MSGPACK)
             job[2].drop()
 
