@@ -147,3 +147,63 @@ def test_forged_liveliness_tokens_never_join_the_fleet(models, flight) -> None:
         session.close()
     finally:
         proc.kill()
+
+
+def test_a_frozen_owner_wakes_without_its_stale_sessions(models, flight) -> None:
+    """An owner frozen (SIGSTOP) past zenoh's 10 s lease loses its blimps to the survivor;
+    on waking (SIGCONT) it forgets its sessions before serving anything (``fenced``), so when
+    its blimps hash back to it their clients re-create them from the survivor's last belief
+    instead of resuming the stale ones (which silently dropped the survivor's steps)."""
+    import signal
+
+    from estimator_service.service.client import list_sessions
+
+    port = free_port()
+    router = subprocess.Popen(
+        [sys.executable, "-m", "estimator_service", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    procs = []
+    try:
+        assert "mode router" in router.stdout.readline()
+        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(2)]
+        procs = [p for p, _ in started]
+        session = open_session([f"tcp/127.0.0.1:{port}"])
+
+        def fleet_of(n: int, within: float = 20.0) -> None:
+            deadline = time.time() + within
+            while time.time() < deadline:
+                views = _fleet_views(session)
+                if len(views) == n and all(len(v) == n for v in views):
+                    return
+                time.sleep(0.2)
+            raise AssertionError(_fleet_views(session))
+
+        fleet_of(2)
+        clients = [EstimatorClient(session, f"frozen{i}", failover=True) for i in range(12)]
+        owner = {c.blimp: c.reset(flight.state[0], STD, t=float(flight.t[0]))["service"] for c in clients}
+        sleeper = owner["frozen0"]
+        victim = next(p for p, ready in started if f"service {sleeper}," in ready)
+        held = [c for c in clients if owner[c.blimp] == sleeper]
+        for c in clients:
+            c.step(flight.control[0], [], float(flight.t[1]))
+        victim.send_signal(signal.SIGSTOP)
+        time.sleep(12.0)  # past the lease: the survivor sees the sleeper gone
+        for k in (1, 2):
+            for c in clients:
+                assert c.step(flight.control[k], [], float(flight.t[k + 1]))["service"] != sleeper
+        assert all(c.resyncs == 1 for c in held)
+        victim.send_signal(signal.SIGCONT)
+        fleet_of(2)
+        view = next(v for v in list_sessions(session) if v["service"] == sleeper)
+        assert view["fenced"] == len(held) and view["count"] == 0, view
+        for c in clients:
+            b = c.step(flight.control[3], [], float(flight.t[4]))
+            assert b["service"] == owner[c.blimp] and b["t"] == float(flight.t[4])
+        assert all(c.resyncs == 2 for c in held)  # re-created from the survivor's belief
+        session.close()
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGCONT)
+            p.kill()
+        router.kill()

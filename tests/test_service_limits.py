@@ -219,6 +219,7 @@ def test_protocol_document_matches_the_code() -> None:
         "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
         "--max-sessions": lim.max_sessions, "--catch-up-share": lim.catch_up_share,
         "--queue-bytes": lim.queue_bytes, "--total-queue-bytes": lim.total_queue_bytes,
+        "--fence-after": lim.fence_after_s,
         "--catch-up-burst": lim.catch_up_burst_s,
     }  # fmt: skip
     for flag, value in flags.items():

@@ -69,6 +69,12 @@ class Limits:
     max_sessions
         Sessions per service; at the cap, expired sessions are closed first, otherwise a
         new blimp is refused with an error naming the cap.
+    fence_after_s
+        A service whose own clock shows it was frozen (stopped, swapped out) for longer than
+        this forgets every session on waking: the fleet may have given its blimps to others
+        meanwhile, and their clients re-create each session from their last belief instead of
+        meeting the stale one. Half zenoh's default 10 s lease, after which the others see
+        the frozen service gone.
     catch_up_share, catch_up_burst_s
         Catching up, the predictions a camera frame needs beyond the first to reach its time,
         may use at most ``catch_up_share`` seconds of filtering per second over all sessions,
@@ -87,6 +93,7 @@ class Limits:
     gate_p: float = 1e-9
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
+    fence_after_s: float = 5.0
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
 
@@ -98,7 +105,8 @@ class Limits:
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
-            "catch_up_share": self.catch_up_share > 0, "catch_up_burst_s": self.catch_up_burst_s > 0,
+            "fence_after_s": self.fence_after_s > 0, "catch_up_share": self.catch_up_share > 0,
+            "catch_up_burst_s": self.catch_up_burst_s > 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -125,6 +133,8 @@ OPTIONS = (
     ("--session-ttl", "session_ttl_s", checked_float(0.0, 1e9),
      "seconds without input after which a session is closed (0: never)"),
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
+    ("--fence-after", "fence_after_s", checked_float(0.0, 1e6, low_open=True),
+     "seconds frozen after which a waking service forgets its sessions (its blimps may have moved)"),
     ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),
      "seconds of catch-up predictions per second, over all sessions (frames beyond it: refused)"),
     ("--catch-up-burst", "catch_up_burst_s", checked_float(0.0, 3600.0, low_open=True),

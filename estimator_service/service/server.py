@@ -44,7 +44,9 @@ from estimator_service.service.session import Session, SessionSettings
 from estimator_service.service.workers import WorkerPool
 from estimator_service.store import model_version, read_system
 
-__all__ = ["EstimatorService", "ServiceConfig", "main", "zenoh_config"]
+__all__ = ["WATCH_TICK_S", "EstimatorService", "ServiceConfig", "main", "zenoh_config"]
+
+WATCH_TICK_S = 0.25  # the freeze watchdog's tick (see Limits.fence_after_s)
 
 
 @dataclass(frozen=True)
@@ -94,8 +96,12 @@ class EstimatorService:
             self.zenoh.declare_queryable(keys.sessions_key(config.service_id), self._on_list),
             self.zenoh.declare_queryable(keys.hello_key(config.service_id), self._on_hello),
         ]
+        self.fenced = 0  # sessions forgotten on waking from a freeze
+        self._tick = time.monotonic()
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
+        self._watchdog = threading.Thread(target=self._watch, name="estimator-watchdog", daemon=True)
+        self._watchdog.start()
         self._fleet = self.zenoh.liveliness().declare_subscriber(
             keys.liveliness_key("*"), self._members.on_token, history=True
         )
@@ -191,6 +197,30 @@ class EstimatorService:
         while not self._stop.wait(min(5.0, ttl / 4) if ttl > 0 else 5.0):
             self._expire(time.monotonic())
 
+    def _watch(self) -> None:
+        """Tick every :data:`WATCH_TICK_S`; a late tick means the process was frozen."""
+        while not self._stop.wait(WATCH_TICK_S):
+            self._fence_if_frozen(tick=True)
+
+    def _fence_if_frozen(self, tick: bool = False) -> None:
+        """Forget every session when this process's clock jumped by more than
+        ``fence_after_s`` since the watchdog's last tick (it was frozen: its blimps may have
+        moved). Lock-free unless frozen: the zenoh callbacks call it for every input."""
+        now = time.monotonic()
+        if now - self._tick <= self.config.limits.fence_after_s:
+            if tick:
+                self._tick = now
+            return
+        with self._lock:
+            if now - self._tick <= self.config.limits.fence_after_s:  # another thread fenced first
+                return
+            self._tick = now
+            stale = list(self._sessions.values())
+            self._sessions.clear()
+            self.fenced += len(stale)
+        for s in stale:
+            s.stop()
+
     def _close_session(self, blimp: str) -> bytes | None:
         """Close a session; its final reply, or None when another close or the expiry
         removed it first."""
@@ -212,7 +242,7 @@ class EstimatorService:
         body = {
             "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
-            "fleet": self.fleet(), "unverified_tokens": self._members.refused,
+            "fleet": self.fleet(), "unverified_tokens": self._members.refused, "fenced": self.fenced,
             "pending_tokens": self._members.pending,
         }  # fmt: skip
         # its own key, not the query's wildcard: replies of several services are not merged
@@ -231,6 +261,7 @@ class EstimatorService:
             self.oversized += 1
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._fence_if_frozen()  # before a session input queued during a freeze meets stale state
         blimp, kind, extra = keys.parse_key(str(sample.key_expr))
         if blimp is None or not self._owns(blimp):
             return
@@ -247,6 +278,7 @@ class EstimatorService:
         session.submit(kind, sample.payload.to_bytes(), None, extra)
 
     def _on_query(self, query: zenoh.Query) -> None:
+        self._fence_if_frozen()
         blimp, kind, _ = keys.parse_key(str(query.key_expr))
         if blimp is None:
             self._refuse(None, kind, "invalid blimp id: 1-64 characters of A-Z a-z 0-9 _ -", query)
