@@ -3,6 +3,8 @@ owner dies, a blimp's session re-created by its client from the last belief."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import subprocess
 import sys
 import time
@@ -49,24 +51,43 @@ def _answers(session: zenoh.Session, blimp: str) -> int:
     return len(list(session.get(key, target=ALL, consolidation=NONE, timeout=2.0)))
 
 
-def test_each_blimp_has_one_owner_and_survives_its_owner_dying(models, flight) -> None:
+def _wait_for_fleet(session: zenoh.Session, n: int, within: float = 20.0) -> None:
+    """Until every one of ``n`` services sees a fleet of ``n``."""
+    deadline = time.time() + within
+    while time.time() < deadline:
+        views = _fleet_views(session)
+        if len(views) == n and all(len(v) == n for v in views):
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"no fleet of {n}: {_fleet_views(session)}")
+
+
+@contextlib.contextmanager
+def _fleet(models: Path, n: int):
+    """A router and ``n`` services connected to it, and a client session once every service
+    sees the fleet: ``(started, session)``, ``started`` as :func:`spawn_service` returns."""
     port = free_port()
     router = subprocess.Popen(
         [sys.executable, "-m", "estimator_service", "router", "--listen", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
-    procs = []
+    started = []
     try:
         assert "mode router" in router.stdout.readline()
-        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(3)]
-        procs = [p for p, _ in started]
+        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(n)]
         session = open_session([f"tcp/127.0.0.1:{port}"])
-        deadline = time.time() + 20
-        while time.time() < deadline and not (
-            len(views := _fleet_views(session)) == 3 and all(len(v) == 3 for v in views)
-        ):
-            time.sleep(0.2)
-        assert len(views) == 3 and all(len(v) == 3 for v in views), views
+        _wait_for_fleet(session, n)
+        yield started, session
+        session.close()
+    finally:
+        for p, _ in started:
+            p.send_signal(signal.SIGCONT)  # a stopped process is killed too
+            p.kill()
+        router.kill()
+
+
+def test_each_blimp_has_one_owner_and_survives_its_owner_dying(models, flight) -> None:
+    with _fleet(models, 3) as (started, session):
         streamed: Counter = Counter()
 
         def count(sample: zenoh.Sample) -> None:
@@ -105,11 +126,6 @@ def test_each_blimp_has_one_owner_and_survives_its_owner_dying(models, flight) -
         time.sleep(0.3)
         sub.undeclare()
         assert streamed and max(streamed.values()) == 1  # no belief delivered twice
-        session.close()
-    finally:
-        for p in procs:
-            p.kill()
-        router.kill()
 
 
 def test_forged_liveliness_tokens_never_join_the_fleet(models, flight) -> None:
@@ -154,32 +170,9 @@ def test_a_frozen_owner_wakes_without_its_stale_sessions(models, flight) -> None
     on waking (SIGCONT) it forgets its sessions before serving anything (``fenced``), so when
     its blimps hash back to it their clients re-create them from the survivor's last belief
     instead of resuming the stale ones (which silently dropped the survivor's steps)."""
-    import signal
-
     from estimator_service.service.client import list_sessions
 
-    port = free_port()
-    router = subprocess.Popen(
-        [sys.executable, "-m", "estimator_service", "router", "--listen", f"tcp/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    procs = []
-    try:
-        assert "mode router" in router.stdout.readline()
-        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(2)]
-        procs = [p for p, _ in started]
-        session = open_session([f"tcp/127.0.0.1:{port}"])
-
-        def fleet_of(n: int, within: float = 20.0) -> None:
-            deadline = time.time() + within
-            while time.time() < deadline:
-                views = _fleet_views(session)
-                if len(views) == n and all(len(v) == n for v in views):
-                    return
-                time.sleep(0.2)
-            raise AssertionError(_fleet_views(session))
-
-        fleet_of(2)
+    with _fleet(models, 2) as (started, session):
         clients = [EstimatorClient(session, f"frozen{i}", failover=True) for i in range(12)]
         owner = {c.blimp: c.reset(flight.state[0], STD, t=float(flight.t[0]))["service"] for c in clients}
         sleeper = owner["frozen0"]
@@ -194,16 +187,10 @@ def test_a_frozen_owner_wakes_without_its_stale_sessions(models, flight) -> None
                 assert c.step(flight.control[k], [], float(flight.t[k + 1]))["service"] != sleeper
         assert all(c.resyncs == 1 for c in held)
         victim.send_signal(signal.SIGCONT)
-        fleet_of(2)
+        _wait_for_fleet(session, 2)
         view = next(v for v in list_sessions(session) if v["service"] == sleeper)
         assert view["fenced"] == len(held) and view["count"] == 0, view
         for c in clients:
             b = c.step(flight.control[3], [], float(flight.t[4]))
             assert b["service"] == owner[c.blimp] and b["t"] == float(flight.t[4])
         assert all(c.resyncs == 2 for c in held)  # re-created from the survivor's belief
-        session.close()
-    finally:
-        for p in procs:
-            p.send_signal(signal.SIGCONT)
-            p.kill()
-        router.kill()
