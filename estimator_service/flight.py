@@ -151,6 +151,8 @@ class Flight:
             sys_ = self.system
         except DescriptionError as exc:
             raise FlightError(f"{where}: {exc}") from None
+        if np.ndim(self.t) != 1:
+            raise FlightError(f"{where}: 't' must be a 1-D array of times, got shape {np.shape(self.t)}")
         n = len(self.t)
         shapes = {
             "t": (n,), "state": (n, sys_.state_dim), "control": (n, sys_.control_dim),
@@ -301,6 +303,7 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
     missing = [k for k in _KEYS if k not in data]
     if missing:
         raise FlightError(f"{where}: missing {missing}")
+    _check_rows(data, where)
     return Flight(
         *(np.asarray(data[k], dtype=np.float64) for k in ("t", "state", "control", "z")),
         np.asarray(data["valid"]).astype(bool),
@@ -309,6 +312,22 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
         np.asarray(data["exact"], dtype=np.float64) if "exact" in data else None,
         _extra_from(data, where),
     )
+
+
+def _check_rows(data: dict, where: str) -> None:
+    """At least one row of times, and episode numbers that are whole numbers (a NaN would
+    become an arbitrary integer when cast)."""
+    t, episode = np.asarray(data["t"]), np.asarray(data["episode"])
+    if t.ndim != 1 or len(t) == 0:
+        raise FlightError(f"{where}: 't' must be a 1-D array with at least one row, got shape {t.shape}")
+    if not np.issubdtype(episode.dtype, np.integer):
+        whole = np.issubdtype(episode.dtype, np.floating) and np.all(
+            np.isfinite(episode) & (episode % 1 == 0)
+        )
+        if not whole:
+            raise FlightError(
+                f"{where}: 'episode' must hold whole numbers, got {episode.dtype} with NaN or fractions"
+            )
 
 
 def _extra_from(data: dict, where: str) -> ExtraReadings | None:

@@ -238,3 +238,34 @@ def test_hostile_model_and_flight_files_are_refused_by_name(tmp_path: Path) -> N
     _npz_declaring(tmp_path / "huge_flight.npz", "state", (10**11, 5))
     with pytest.raises(FlightError, match="array 'state' declares"):
         load_flight(tmp_path / "huge_flight.npz")
+
+
+def test_hostile_flight_files_are_one_line_errors(tmp_path: Path) -> None:
+    """A scalar ``t``, a flight without rows and NaN episode numbers are refused by name
+    (were: a TypeError traceback, a later failure, and NaN cast to an arbitrary episode)."""
+    from estimator_service.flight import load_flight
+
+    log, sys_file = write_robot_log(tmp_path, np.random.default_rng(2), rows=20)
+    good = tmp_path / "good.npz"
+    save_flight(load_csv(log, System.from_json(sys_file.read_text())), good)
+    with np.load(good) as d:
+        arrays = {k: d[k] for k in d.files}
+    for name, change, needle in (
+        ("scalar_t", {"t": np.array(1.0)}, "'t' must be a 1-D array with at least one row, got shape ()"),
+        (
+            "no_rows",
+            {k: v[:0] for k, v in arrays.items() if k != "metadata"},
+            "at least one row, got shape (0,)",
+        ),
+        (
+            "nan_episode",
+            {"episode": np.where(np.arange(20) == 3, np.nan, 0.0)},
+            "'episode' must hold whole numbers",
+        ),
+        ("half_episode", {"episode": np.full(20, 0.5)}, "'episode' must hold whole numbers"),
+    ):
+        path = tmp_path / f"{name}.npz"
+        np.savez(path, **{**arrays, **change})
+        with pytest.raises(FlightError, match=re.escape(needle)):
+            load_flight(path)
+    assert len(load_flight(good)) == 20
