@@ -219,7 +219,7 @@ def test_protocol_document_matches_the_code() -> None:
         "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
         "--max-sessions": lim.max_sessions, "--catch-up-share": lim.catch_up_share,
         "--queue-bytes": lim.queue_bytes, "--total-queue-bytes": lim.total_queue_bytes,
-        "--fence-after": lim.fence_after_s,
+        "--fence-after": lim.fence_after_s, "--evict-idle": lim.evict_idle_s,
         "--catch-up-burst": lim.catch_up_burst_s,
     }  # fmt: skip
     for flag, value in flags.items():
@@ -327,3 +327,28 @@ def test_queues_are_bounded_in_bytes_per_session_and_over_the_service() -> None:
         pass
     assert meter.used == sum(b.bytes for b in boxes) == 140_000
     assert boxes[3].put(job(40_000)) and boxes[3].bytes == 40_000 and meter.used == 180_000
+
+
+def test_a_full_session_table_frees_its_idlest_session_for_a_new_blimp(models, flight) -> None:
+    """Resets never followed by input filled the table until the 600 s time-out; at the cap a
+    new blimp now takes the place of the session idle the longest once it has been idle for
+    ``--evict-idle``, and a blimp that keeps stepping is never the one evicted."""
+    svc = Running(models, "--max-sessions", "3", "--evict-idle", "0.5")
+    try:
+        old = [svc.client(f"fake{i}") for i in range(3)]
+        for c in old:
+            c.reset(flight.state[0], STD, t=float(flight.t[0]))
+        with pytest.raises(ServiceError, match=r"session cap of 3 reached and none idle for 0\.5 s"):
+            svc.client("newcomer").reset(flight.state[0], STD)
+        for k in range(4):  # fake1 stays active
+            time.sleep(0.2)
+            old[1].step(flight.control[k], [], float(flight.t[k + 1]))
+        svc.client("newcomer").reset(flight.state[0], STD)
+        svc.client("second").reset(flight.state[0], STD)
+        view = svc.sessions()
+        assert sorted(s["blimp"] for s in view["sessions"]) == ["fake1", "newcomer", "second"]
+        assert view["evicted"] == 2
+        with pytest.raises(ServiceError, match="no session"):
+            old[0].status()
+    finally:
+        assert svc.close() == 0

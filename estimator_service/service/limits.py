@@ -69,6 +69,9 @@ class Limits:
     max_sessions
         Sessions per service; at the cap, expired sessions are closed first, otherwise a
         new blimp is refused with an error naming the cap.
+    evict_idle_s
+        At the session cap, a new blimp's reset closes the session idle the longest if it
+        has been idle this long (counted as ``evicted``); otherwise the reset is refused.
     fence_after_s
         A service whose own clock shows it was frozen (stopped, swapped out) for longer than
         this forgets every session on waking: the fleet may have given its blimps to others
@@ -93,6 +96,7 @@ class Limits:
     gate_p: float = 1e-9
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
+    evict_idle_s: float = 30.0
     fence_after_s: float = 5.0
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
@@ -105,7 +109,8 @@ class Limits:
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
-            "fence_after_s": self.fence_after_s > 0, "catch_up_share": self.catch_up_share > 0,
+            "evict_idle_s": self.evict_idle_s >= 0, "fence_after_s": self.fence_after_s > 0,
+            "catch_up_share": self.catch_up_share > 0,
             "catch_up_burst_s": self.catch_up_burst_s > 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
@@ -133,6 +138,8 @@ OPTIONS = (
     ("--session-ttl", "session_ttl_s", checked_float(0.0, 1e9),
      "seconds without input after which a session is closed (0: never)"),
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
+    ("--evict-idle", "evict_idle_s", checked_float(0.0, 1e9),
+     "seconds idle after which a session may be closed for a new blimp at the session cap"),
     ("--fence-after", "fence_after_s", checked_float(0.0, 1e6, low_open=True),
      "seconds frozen after which a waking service forgets its sessions (its blimps may have moved)"),
     ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),

@@ -97,6 +97,7 @@ class EstimatorService:
             self.zenoh.declare_queryable(keys.hello_key(config.service_id), self._on_hello),
         ]
         self.fenced = 0  # sessions forgotten on waking from a freeze
+        self.evicted = 0  # idle sessions closed at the cap for a new blimp
         self._tick = time.monotonic()
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
@@ -140,10 +141,12 @@ class EstimatorService:
                 return f"{NO_SESSION} {blimp!r}: send a reset ({why})"
             if s is None and len(self._sessions) >= self.config.limits.max_sessions:
                 self._expire(time.monotonic())
+                self._evict_idlest()
             if s is None and len(self._sessions) >= self.config.limits.max_sessions:
-                cap = self.config.limits.max_sessions
+                cap, idle = self.config.limits.max_sessions, self.config.limits.evict_idle_s
                 return (
-                    f"session cap of {cap} reached: close sessions ('close') or wait for idle ones to expire"
+                    f"session cap of {cap} reached and none idle for {idle:g} s (--evict-idle): "
+                    f"close sessions ('close') or wait"
                 )
             if s is None:
                 s = Session(
@@ -191,6 +194,17 @@ class EstimatorService:
             for b in old:
                 self._sessions.pop(b).stop()
         return len(old)
+
+    def _evict_idlest(self) -> None:
+        """At the session cap (under the lock): close the session idle the longest, if it has
+        been idle for ``evict_idle_s`` (a table filled by resets that are never followed by
+        input frees up within that time, not the session time-out)."""
+        now = time.monotonic()
+        idle = {b: s.idle_s(now) for b, s in self._sessions.items()}
+        blimp = max(idle, key=idle.__getitem__, default=None)
+        if blimp is not None and idle[blimp] >= self.config.limits.evict_idle_s:
+            self._sessions.pop(blimp).stop()
+            self.evicted += 1
 
     def _expire_loop(self) -> None:
         ttl = self.config.limits.session_ttl_s
@@ -243,6 +257,7 @@ class EstimatorService:
             "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
             "fleet": self.fleet(), "unverified_tokens": self._members.refused, "fenced": self.fenced,
+            "evicted": self.evicted,
             "pending_tokens": self._members.pending,
         }  # fmt: skip
         # its own key, not the query's wildcard: replies of several services are not merged
