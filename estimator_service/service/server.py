@@ -89,6 +89,9 @@ class EstimatorService:
         self._stop = threading.Event()
         self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
         self._members = Membership(self.zenoh, config.service_id, self._lock, self._fleet_changed)
+        self.fenced = 0  # sessions forgotten on waking from a freeze
+        self.evicted = 0  # idle sessions closed at the cap for a new blimp
+        self._tick = time.monotonic()  # the freeze watchdog's last tick
         # every field a callback reads exists before the first callback can run
         self._decls = [
             *(self.zenoh.declare_subscriber(keys.wildcard(k), self._on_sample) for k in keys.INPUTS),
@@ -96,9 +99,6 @@ class EstimatorService:
             self.zenoh.declare_queryable(keys.sessions_key(config.service_id), self._on_list),
             self.zenoh.declare_queryable(keys.hello_key(config.service_id), self._on_hello),
         ]
-        self.fenced = 0  # sessions forgotten on waking from a freeze
-        self.evicted = 0  # idle sessions closed at the cap for a new blimp
-        self._tick = time.monotonic()
         self._janitor = threading.Thread(target=self._expire_loop, name="estimator-janitor", daemon=True)
         self._janitor.start()
         self._watchdog = threading.Thread(target=self._watch, name="estimator-watchdog", daemon=True)
