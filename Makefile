@@ -5,13 +5,13 @@ VENV    := .venv
 STAMP   := $(VENV)/.installed
 PIP     := $(VENV)/bin/python -m pip
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench mutate clean
 
 $(VENV)/bin/python:
 	$(PY) -m venv $(VENV)
 
 $(STAMP): $(VENV)/bin/python pyproject.toml constraints.txt
-	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e ".[all,dev,bench,zoo,ros]"
+	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e ".[all,dev,bench,zoo,ros,mutate]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -26,5 +26,11 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py
 
+# Mutation testing (outside `make test`; about an hour on 2 cores): the configuration is
+# [tool.mutmut] in pyproject.toml; the score goes to docs/results/mutation/.
+mutate: $(STAMP)
+	$(VENV)/bin/mutmut run --max-children $$(nproc)
+	$(VENV)/bin/python docs/results/mutation/summarise.py
+
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out mutants

@@ -28,6 +28,7 @@ from estimator_service.cli_args import (
     calibration_options,
     checked_float,
     checked_int,
+    model_kind,
     package_version,
     seed,
 )
@@ -66,7 +67,7 @@ def _train_agent(args: argparse.Namespace) -> int:
         args.obs,
         args.task,
         args.filter,
-        args.model,
+        model_kind(args),
         str(args.models) if args.models else None,
         args.seed,
     )

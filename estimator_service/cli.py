@@ -25,6 +25,7 @@ from estimator_service.cli_args import (
     checked_float,
     checked_int,
     filter_options,
+    model_kind,
     package_version,
     seed,
 )
@@ -132,6 +133,7 @@ def run_track(args: argparse.Namespace) -> int:
     from estimator_service.tracking import track_flight
 
     flight = _read_log(args.log, args)
+    args.model = model_kind(args)
     filt = build_filter(args.filter, args.model, args.models, **filter_options(args))
     with ProgressBar(f"track {args.filter}/{args.model}", len(flight) - 1, enabled=not args.quiet) as bar:
         result = track_flight(filt, flight, rng=np.random.default_rng(args.seed), on_step=bar.update_to)

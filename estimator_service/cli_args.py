@@ -23,6 +23,7 @@ __all__ = [
     "checked_float",
     "checked_int",
     "filter_options",
+    "model_kind",
     "package_version",
     "seed",
 ]
@@ -152,13 +153,29 @@ def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = Fa
         help="model folder from 'gpbf train'",
     )
     p.add_argument("--filter", choices=FILTERS, default=DEFAULT_FILTER, help="Bayes filter")
-    p.add_argument("--model", choices=MODELS, default=DEFAULT_MODEL, help="model kind")
+    p.add_argument(
+        "--model", choices=MODELS, default=None,
+        help="model kind (default: the first the model folder has of hetgp, egp, gp, sparse, param, "
+        "the paper's ranking)",
+    )  # fmt: skip
     p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")
     p.add_argument(
         "--adapt", type=checked_float(0.0, 1.0), default=None, metavar="RATE",
         help=f"EKF/UKF: inflate the process noise while NIS/dof stays above its calibrated level at this "
         f"rate (0: off; default {ADAPT_RATE}, or off where the models' calibration chose the plain filter)",
     )  # fmt: skip
+
+
+def model_kind(args: argparse.Namespace) -> str:
+    """``--model``, or the kind the ``--models`` folder ranks first
+    (:func:`~estimator_service.factory.preferred_kind`; :data:`DEFAULT_MODEL` without a folder)."""
+    if args.model is not None:
+        return args.model
+    if args.models is None or not Path(args.models).is_dir():
+        return DEFAULT_MODEL
+    from estimator_service.factory import preferred_kind
+
+    return preferred_kind(args.models)
 
 
 def filter_options(args: argparse.Namespace) -> dict[str, object]:

@@ -65,6 +65,9 @@ MODEL_KINDS = ("param", "gp", "egp", "hetgp", "sparse")
 #: heteroscedastic GP is one of them, as the paper's Tables 7-8 rank it above the EGP.
 ENHANCED_KINDS = ("egp", "hetgp")
 PARAMETRIC_FILE = "parametric.npz"
+#: the kind a command runs when none is named: the first the folder has, in the paper's
+#: ranking of the models (Tables 7-8: hetGP, then EGP, GP, the sparse GP, parametric last)
+MODEL_PREFERENCE = ("hetgp", "egp", "gp", "sparse", "param")
 
 
 @dataclass(frozen=True)
@@ -164,6 +167,14 @@ def folder_kinds(folder: str | os.PathLike[str], system: System) -> list[str]:
     ]
 
 
+def preferred_kind(folder: str | os.PathLike[str]) -> str:
+    """The kind a command runs on ``folder`` when none is named (:data:`MODEL_PREFERENCE`)."""
+    have = folder_kinds(folder, read_system(Path(folder)))
+    if not have:
+        raise ValueError(f"model folder {os.fspath(folder)} holds no trained models: run 'gpbf train'")
+    return next(k for k in MODEL_PREFERENCE if k in have)
+
+
 def load_models(
     model_dir: str | os.PathLike[str], kind: str, *, calibrated: bool = True, check: bool = True
 ) -> tuple[PredictionModel, ObservationModel]:
@@ -258,12 +269,8 @@ def _observation(folder: Path, kind: str, system: System, param: Parametric | No
     return StackedObservationModel(tuple(parts), None if in_order else tuple(columns))
 
 
-# Regularised resampling with the Kalman-updated covariance of the predicted cloud. On the
-# committed seed-0 full run's held-out segments (8 x 30 s, 500 particles) the aggregate RMS
-# with the weighted-posterior kernel was GP 24.9, EGP 20.7, hetGP 27.2, sparse 15.3,
-# Param 17.0, and with the Kalman kernel GP 13.3, EGP 10.4, hetGP 9.9, sparse 11.8,
-# Param 16.2: the weighted covariance collapses whenever one particle takes almost all
-# the weight, and the cloud then cannot follow the truth.
+# Regularised resampling with the Kalman-updated covariance of the predicted cloud; measured:
+# docs/measurements.md#pf-roughening-kernel
 _PF_DEFAULTS: dict[str, object] = {"roughen": 1.0, "roughen_cov": "kalman"}
 
 

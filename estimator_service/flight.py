@@ -31,6 +31,7 @@ layout in ``docs/your-robot.md``).
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
 import os
@@ -127,13 +128,9 @@ class Flight:
         frames = self.valid.sum(0).tolist()
         return f"Flight({self.system.name!r}, rows={len(self)}, episodes={eps}, frames={frames})"
 
-    @property
+    @functools.cached_property
     def system(self) -> System:
-        cached = self.__dict__.get("_system")
-        if cached is None:
-            cached = System.from_dict(self.metadata["system"], "flight metadata 'system'")
-            object.__setattr__(self, "_system", cached)
-        return cached
+        return System.from_dict(self.metadata["system"], "flight metadata 'system'")
 
     @property
     def dt(self) -> float:

@@ -19,6 +19,7 @@ a sensor delivers all its outputs or none at a step, so validity is kept per sen
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
@@ -31,6 +32,7 @@ from numpy.typing import NDArray
 
 from estimator_service.angles import wrap_angle, wrap_columns
 from estimator_service.filters.common import Wrapping, distinct_indices
+from estimator_service.frozen import normalise
 
 __all__ = [
     "DescriptionError",
@@ -125,8 +127,11 @@ class ModelSpec:
                 raise DescriptionError(
                     f"{where}: {ref!r} is not 'package.module:attribute' or an entry-point name"
                 )
-        object.__setattr__(self, "params", _named_values(self.params, "params", where))
-        object.__setattr__(self, "fixed", _named_values(self.fixed, "fixed", where))
+        normalise(
+            self,
+            params=_named_values(self.params, "params", where),
+            fixed=_named_values(self.fixed, "fixed", where),
+        )
         clash = {k for k, _ in self.params} & {k for k, _ in self.fixed}
         if clash:
             raise DescriptionError(f"{where}: {sorted(clash)} both in 'params' and in 'fixed'")
@@ -179,7 +184,7 @@ class SensorType:
     model: ModelSpec | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "constants", tuple(str(c) for c in self.constants))
+        normalise(self, constants=tuple(str(c) for c in self.constants))
         if not _is_name(self.name):
             raise DescriptionError(f"sensor type name {self.name!r}: use letters, digits, '_' and '-'")
         if not all(map(_is_name, self.constants)) or len(set(self.constants)) != len(self.constants):
@@ -231,21 +236,24 @@ class Sensor:
     noise_floor: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "outputs", tuple(str(o) for o in self.outputs))
+        normalise(self, outputs=tuple(str(o) for o in self.outputs))
         if not _is_name(self.name):
             raise DescriptionError(f"sensor name {self.name!r}: use letters, digits, '_' and '-'")
         where = f"sensor {self.name!r}"
         if not self.outputs:
             raise DescriptionError(f"{where}: 'outputs' is empty")
-        object.__setattr__(self, "periods", _floats(self.periods, self.size, "periods", where))
-        object.__setattr__(self, "noise_floor", _floats(self.noise_floor, self.size, "noise_floor", where))
+        normalise(
+            self,
+            periods=_floats(self.periods, self.size, "periods", where),
+            noise_floor=_floats(self.noise_floor, self.size, "noise_floor", where),
+        )
         try:
             constants = tuple(float(c) for c in self.constants)
         except (TypeError, ValueError):
             constants = (math.nan,)
         if not all(math.isfinite(c) for c in constants):
             raise DescriptionError(f"{where}: 'constants' must be finite numbers, got {self.constants!r}")
-        object.__setattr__(self, "constants", constants)
+        normalise(self, constants=constants)
         if self.rate_hz is not None and not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise DescriptionError(f"{where}: 'rate_hz' must be > 0, got {self.rate_hz}")
 
@@ -342,18 +350,17 @@ class System:
     sensor_types: tuple[SensorType, ...] = ()
     process_noise_floor: tuple[float, ...] = ()
     control_delay: float = 0.0
-    _slices: tuple[slice, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        fix = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
-        fix("state", tuple(str(s) for s in self.state))
-        fix("controls", tuple(str(c) for c in self.controls))
-        fix("sensors", tuple(self.sensors))
+        fix = functools.partial(normalise, self)
+        fix(state=tuple(str(s) for s in self.state))
+        fix(controls=tuple(str(c) for c in self.controls))
+        fix(sensors=tuple(self.sensors))
         n = len(self.state)
-        fix("state_periods", tuple(float(p) for p in self.state_periods) or (0.0,) * n)
+        fix(state_periods=tuple(float(p) for p in self.state_periods) or (0.0,) * n)
         if self.circle_inputs is None:
-            fix("circle_inputs", tuple(i for i, p in enumerate(self.state_periods) if p > 0))
-        fix("circle_inputs", tuple(int(i) for i in self.circle_inputs))
+            fix(circle_inputs=tuple(i for i, p in enumerate(self.state_periods) if p > 0))
+        fix(circle_inputs=tuple(int(i) for i in self.circle_inputs))
         if self.disturbed is not None:
             idx = distinct_indices(self.disturbed, n)
             if idx is None:
@@ -361,17 +368,15 @@ class System:
                     f"system {self.name!r}: 'disturbed' must be distinct indices of the state "
                     f"(or null: all), got {self.disturbed!r}"
                 )
-            fix("disturbed", idx)
-        fix("groups", tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
-        fix("prior_mean", tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
-        fix("prior_std", tuple(float(v) for v in self.prior_std) or (1.0,) * n)
-        fix("sensor_types", tuple(self.sensor_types))
+            fix(disturbed=idx)
+        fix(groups=tuple(self.groups) or tuple(Group(s, (i,)) for i, s in enumerate(self.state)))
+        fix(prior_mean=tuple(float(v) for v in self.prior_mean) or (0.0,) * n)
+        fix(prior_std=tuple(float(v) for v in self.prior_std) or (1.0,) * n)
+        fix(sensor_types=tuple(self.sensor_types))
         where = f"system {self.name!r}"
-        fix("process_noise_floor", _floats(self.process_noise_floor, n, "process_noise_floor", where))
+        fix(process_noise_floor=_floats(self.process_noise_floor, n, "process_noise_floor", where))
         self._check()
         self._check_types()
-        starts = np.cumsum([0, *(s.size for s in self.sensors)])
-        fix("_slices", tuple(slice(int(a), int(b)) for a, b in itertools.pairwise(starts)))
 
     def _check(self) -> None:
         n, where = len(self.state), f"system {self.name!r}"
@@ -475,6 +480,11 @@ class System:
     def sensor_slice(self, k: int) -> slice:
         """Where sensor ``k``'s outputs sit in ``z``."""
         return self._slices[k]
+
+    @functools.cached_property
+    def _slices(self) -> tuple[slice, ...]:
+        starts = np.cumsum([0, *(s.size for s in self.sensors)])
+        return tuple(slice(int(a), int(b)) for a, b in itertools.pairwise(starts))
 
     @property
     def obs_periods(self) -> FloatArray:

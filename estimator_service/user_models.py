@@ -26,13 +26,14 @@ noise floor.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.metadata
 import json
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -193,13 +194,18 @@ class _FittedFunctions:
     __repr__ = short_repr
 
     fitted: FittedModel
-    function: Callable[..., Any] = field(init=False, repr=False)
-    jacobian: Callable[..., Any] | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        spec = self.fitted.spec
-        object.__setattr__(self, "function", resolve(spec.function))
-        object.__setattr__(self, "jacobian", None if spec.jacobian is None else resolve(spec.jacobian))
+        _, _ = self.function, self.jacobian  # an unresolvable reference fails here, by name
+
+    @functools.cached_property
+    def function(self) -> Callable[..., Any]:
+        return resolve(self.fitted.spec.function)
+
+    @functools.cached_property
+    def jacobian(self) -> Callable[..., Any] | None:
+        ref = self.fitted.spec.jacobian
+        return None if ref is None else resolve(ref)
 
 
 @dataclass(frozen=True, eq=False)

@@ -62,6 +62,7 @@ def test_scales_file_round_trip_merge_and_errors(tmp_path: Path) -> None:
         read_noise_scales(tmp_path)
 
 
+@pytest.mark.slow
 def test_process_calibration_matches_each_output_to_the_held_out_errors(tmp_path: Path) -> None:
     """One-step scales are each output's mean squared standardised residual on the held-out
     transitions; the matching rounds then bring every output's ``e^2 / P`` on those rows
@@ -98,12 +99,9 @@ def _check_nis_reference(flight, rows: slice, folder: Path) -> None:
     """The stored reference is the calibrated (non-adaptive) EKF's mean NIS/dof on the
     calibration rows; the factory's and the service's adaptive filters carry it, and a
     service configured with rate 0 does not adapt (it adapted at 0.5 before)."""
-    import threading
-    from types import SimpleNamespace
-
-    from estimator_service.factory import build_filter
+    from estimator_service.factory import build_filter, load_models
     from estimator_service.models.calibration import read_nis_reference
-    from estimator_service.service.server import EstimatorService, ServiceConfig
+    from estimator_service.service.server import ServiceConfig, service_filter
     from estimator_service.store import read_system
     from estimator_service.tracking import track_flight
 
@@ -114,12 +112,12 @@ def _check_nis_reference(flight, rows: slice, folder: Path) -> None:
     assert build_filter("ukf", "param", folder).adapt_reference == level
     assert build_filter("ekf", "param", folder).adapt_states == tuple(range(6, 12))  # the blimp's velocities
     for rate in (0.0, 0.3):
-        svc = SimpleNamespace(config=ServiceConfig(folder, adapt_rate=rate), _lock=threading.RLock(),
-                              _filters={}, _models={}, system=read_system(folder))  # fmt: skip
-        filt = EstimatorService._build_filter(svc, "ekf", "param")
+        config, models = ServiceConfig(folder, adapt_rate=rate), load_models(folder, "param")
+        filt = service_filter(config, read_system(folder), "ekf", "param", models)
         assert (filt.adapt_rate, filt.adapt_reference) == (rate, level)
 
 
+@pytest.mark.slow
 def test_cross_fitted_calibration_by_likelihood_on_a_new_flight(tmp_path: Path) -> None:
     """GP models trained on an 8-minute lab flight and calibrated by cross-fitting (four
     2-minute blocks, each scored with models that never saw it; the factor chosen by the
@@ -154,6 +152,7 @@ def test_cross_fitted_calibration_by_likelihood_on_a_new_flight(tmp_path: Path) 
     assert cal["position_mm"] <= 1.05 * unc["position_mm"]
 
 
+@pytest.mark.slow
 def test_a_calibration_that_scores_worse_than_none_is_not_applied() -> None:
     """The held-out log-likelihood chooses the factor on the matched noise, and refuses a
     calibration that cannot beat the uncalibrated models: on a linear-Gaussian system whose
@@ -198,6 +197,7 @@ def test_a_calibration_that_scores_worse_than_none_is_not_applied() -> None:
     assert fixed.chosen.coverage[1][0] > fixed.uncalibrated.coverage[1][0]  # 2-sigma coverage of p
 
 
+@pytest.mark.slow
 def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: Path, monkeypatch) -> None:
     """Cross-fitting: the saved models see the whole flight; each calibration block is
     scored only with models fitted without any of its rows."""
@@ -304,6 +304,7 @@ def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path:
     assert read_noise_scales(tmp_path) == {}  # process scales untouched
 
 
+@pytest.mark.slow
 def test_condition_only_folds_keep_the_final_hyperparameters(tmp_path: Path, monkeypatch) -> None:
     """With ``calibration_refit=False`` every kind's fold models carry the final models'
     hyperparameters (conditioned on the fold's data, not optimised again)."""

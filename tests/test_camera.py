@@ -30,6 +30,7 @@ def test_point_on_optical_axis_projects_to_principal_point() -> None:
         assert behind < 0
 
 
+@pytest.mark.slow
 def test_sphere_on_axis_gives_circle_of_tangent_cone_size() -> None:
     cam = dataclasses.replace(default_cameras(ROOM)[0], k1=0.0, k2=0.0)
     rho, d = 0.4, 5.0

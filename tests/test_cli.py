@@ -66,7 +66,9 @@ def test_help_shows_the_same_defaults_everywhere(capsys) -> None:
             gpbf([*cmd, "--help"])
         helps[cmd[0]] = capsys.readouterr().out
     for text in helps.values():
-        assert "(default: ekf)" in text and "(default: gp)" in text and "(default: 2000)" in text
+        text = " ".join(text.split())
+        assert "(default: ekf)" in text and "(default: 2000)" in text
+        assert "hetgp, egp, gp, sparse, param" in text
 
 
 def test_help_names_each_default_once_and_no_empty_default(capsys) -> None:
@@ -157,6 +159,24 @@ def test_a_model_kind_the_folder_lacks_is_named_with_the_kinds_it_has(capsys, tm
     assert "has no 'sparse' models (it has: gp)" in err
     track = ["track", str(log), "--system", str(system), "--models", str(out), "--model", "sparse"]
     _fails(capsys, track, main=estimator, needle="(it has: gp)")
+    # a folder without the plain GP: with no --model every command runs a kind it has
+    sparse = tmp_path / "sparse"
+    argv = [
+        "train",
+        str(log),
+        "--system",
+        str(system),
+        "--out",
+        str(sparse),
+        "--kinds",
+        "sparse",
+        "--points",
+        "40",
+    ]
+    assert estimator([*argv, "--calibration-seconds", "0", "--quiet"]) == 0
+    capsys.readouterr()
+    assert estimator(["track", str(log), "--system", str(system), "--models", str(sparse)]) == 0
+    assert "track ekf/sparse" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -190,6 +190,7 @@ class SinObs:
 
 
 @pytest.mark.parametrize("cls", [EKF, UKF])
+@pytest.mark.slow
 def test_covariance_stays_positive_definite_over_10000_steps(cls) -> None:
     filt = cls(Pendulum(), SinObs())
     rng = np.random.default_rng(0)
@@ -498,6 +499,7 @@ def _nees_and_inflation(filt, q_true: np.ndarray, steps: int = 400) -> tuple[flo
 
 
 @pytest.mark.parametrize("cls", [EKF, UKF])
+@pytest.mark.slow
 def test_adaptive_process_noise_stays_put_when_consistent_and_inflates_when_not(cls) -> None:
     """With the model's own noise the factor stays near its floor and the filter is the
     Kalman filter's within a few percent of NEES; with 10x the process noise it rises and
@@ -524,6 +526,7 @@ def _nis_level(filt, steps: int = 400) -> float:
 
 
 @pytest.mark.parametrize("cls", [EKF, UKF])
+@pytest.mark.slow
 def test_adaptation_referenced_to_the_calibrated_nis_level_catches_what_nis_one_misses(cls) -> None:
     """A filter whose noise was widened 2.5x (as a calibration's coverage factor does) has
     innovations well below consistent (mean NIS/dof 0.4): referred to 1, the adaptation

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -99,6 +100,18 @@ def test_saved_agent_reloads_and_acts_deterministically(models: str, tmp_path: P
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(moved)
         assert load_agent(Path("..") / path.name)[1] == spec
+    # a model file is loaded by its name (beside agent.json, or a checkpoint in checkpoints/)
+    with torch.no_grad():
+        for p in a1.policy.parameters():
+            p.add_(1.0)
+    for other in (tmp_path / "other.zip", tmp_path / "checkpoints" / "agent_7_steps.zip"):
+        a1.save(other)
+        a3, spec3 = load_agent(other)
+        assert spec3 == spec
+        for p1, p2, p3 in zip(
+            a1.policy.parameters(), a2.policy.parameters(), a3.policy.parameters(), strict=True
+        ):
+            assert torch.equal(p3, p1) and not torch.equal(p3, p2)
 
 
 OBS_TOL = {"rtol": 1e-4, "atol": 1e-5}  # batched vs one-at-a-time observations (float32 beliefs)

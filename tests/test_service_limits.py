@@ -1,9 +1,13 @@
 """The service under hostile input, against real processes: bounded work and memory per
-message, gating, the session lifecycle, and a protocol document that matches the code."""
+message, gating, the session lifecycle, and a protocol document that matches the code; and
+the limits as plain objects, in process: each bound at its edge, the catch-up budget
+against a clock the test moves, the options that carry them, the gate and the control log."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import re
 import signal
 import time
@@ -11,8 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from agents.sim import collect_flight
+from estimator_service.filters import StepInfo
 from estimator_service.service import keys
 from estimator_service.service.client import (
     EstimatorClient,
@@ -22,7 +28,15 @@ from estimator_service.service.client import (
     spawn_service,
 )
 from estimator_service.service.config import zenoh_config
-from estimator_service.service.limits import Limits
+from estimator_service.service.limits import (
+    OPTIONS,
+    ControlLog,
+    Limits,
+    WorkBudget,
+    add_limit_options,
+    gated,
+    limits_from,
+)
 from estimator_service.service.protocol import ENCODING, MAX_PAYLOAD, PROTOCOL_VERSION, decode, encode
 from estimator_service.training import TrainSettings, train_models
 
@@ -80,6 +94,7 @@ def _lock_step_ms(c: EstimatorClient, flight, k: int) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
+@pytest.mark.slow
 def test_far_future_input_is_rejected_and_healthy_blimps_keep_answering(models, flight) -> None:
     svc = Running(models)
     try:
@@ -100,6 +115,7 @@ def test_far_future_input_is_rejected_and_healthy_blimps_keep_answering(models, 
         assert svc.close() == 0
 
 
+@pytest.mark.slow
 def test_floods_of_valid_and_oversized_messages_stay_bounded(models, flight) -> None:
     svc = Running(models)
     try:
@@ -125,6 +141,7 @@ def test_floods_of_valid_and_oversized_messages_stay_bounded(models, flight) -> 
         assert svc.close() == 0
 
 
+@pytest.mark.slow
 def test_an_implausible_frame_is_gated_and_normal_input_still_works(models, flight) -> None:
     svc = Running(models)
     try:
@@ -147,6 +164,7 @@ def test_an_implausible_frame_is_gated_and_normal_input_still_works(models, flig
         assert svc.close() == 0
 
 
+@pytest.mark.slow
 def test_session_lifecycle_status_close_list_expiry_and_cap(models, flight) -> None:
     svc = Running(models, "--session-ttl", "1", "--max-sessions", "2")
     try:
@@ -168,6 +186,7 @@ def test_session_lifecycle_status_close_list_expiry_and_cap(models, flight) -> N
         assert svc.close() == 0
 
 
+@pytest.mark.slow
 def test_non_ascii_camera_keys_payload_encoding_and_ready_line(models) -> None:
     svc = Running(models)
     try:
@@ -266,6 +285,7 @@ def test_blas_threads_are_shared_out_over_the_workers(requested, workers, cores,
 
 
 @pytest.mark.parametrize("unbounded", [False, True])
+@pytest.mark.slow
 def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models, flight, unbounded) -> None:
     """Three blimps on the particle filter send chains of camera frames, each 59 s after the
     last (inside the 60 s horizon: about 236 predictions each). The service's catch-up budget
@@ -329,6 +349,7 @@ def test_queues_are_bounded_in_bytes_per_session_and_over_the_service() -> None:
     assert boxes[3].put(job(40_000)) and boxes[3].bytes == 40_000 and meter.used == 180_000
 
 
+@pytest.mark.slow
 def test_a_full_session_table_frees_its_idlest_session_for_a_new_blimp(models, flight) -> None:
     """Resets never followed by input filled the table until the 600 s time-out; at the cap a
     new blimp now takes the place of the session idle the longest once it has been idle for
@@ -352,3 +373,116 @@ def test_a_full_session_table_frees_its_idlest_session_for_a_new_blimp(models, f
             old[0].status()
     finally:
         assert svc.close() == 0
+
+
+#: per field: a value just inside its range and one just outside (an error naming the field)
+EDGES = {
+    "horizon_s": (1e-9, 0.0),
+    "max_gap_steps": (1, 0),
+    "queue_cap": (1, 0),
+    "queue_bytes": (1, 0),
+    "total_queue_bytes": (1, 0),
+    "max_controls": (1, 0),
+    "gate_p": (0.0, -1e-12),
+    "session_ttl_s": (0.0, -1e-9),
+    "max_sessions": (1, 0),
+    "evict_idle_s": (0.0, -1e-9),
+    "fence_after_s": (1e-9, 0.0),
+    "catch_up_share": (1e-9, 0.0),
+    "catch_up_burst_s": (1e-9, 0.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EDGES))
+def test_each_limit_is_accepted_at_its_edge_and_refused_past_it_by_name(name: str) -> None:
+    inside, outside = EDGES[name]
+    assert getattr(Limits(**{name: inside}), name) == inside
+    for bad in (outside, math.nan):
+        with pytest.raises(ValueError, match=rf"service limits out of range: {name}=") as err:
+            Limits(**{name: bad})
+        assert str(err.value).count("=") == 1  # only the bad field is named
+
+
+def test_the_gate_probability_stays_below_one() -> None:
+    assert Limits(gate_p=0.999).gate_p == 0.999
+    with pytest.raises(ValueError, match="gate_p=1"):
+        Limits(gate_p=1.0)
+    with pytest.raises(ValueError, match=r"horizon_s=-1.*queue_cap=0"):
+        Limits(horizon_s=-1.0, queue_cap=0)
+
+
+def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> None:
+    p = argparse.ArgumentParser()
+    add_limit_options(p)
+    assert limits_from(p.parse_args([])) == Limits()
+    assert {name for _, name, _, _ in OPTIONS} == set(EDGES)
+    given = {
+        "horizon_s": 30.0, "max_gap_steps": 7, "queue_cap": 8, "queue_bytes": 9, "total_queue_bytes": 10,
+        "max_controls": 11, "gate_p": 0.25, "session_ttl_s": 12.0, "max_sessions": 13,
+        "evict_idle_s": 14.0, "fence_after_s": 15.0, "catch_up_share": 16.0, "catch_up_burst_s": 17.0,
+    }  # fmt: skip
+    args = [str(a) for flag, name, _, _ in OPTIONS for a in (flag, given[name])]
+    got = limits_from(p.parse_args(args))
+    assert {name: getattr(got, name) for name in EDGES} == given != {n: getattr(Limits(), n) for n in EDGES}
+
+
+class Clock:
+    """A clock the test moves."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_catch_up_budget_refills_at_its_rate_up_to_its_burst() -> None:
+    clock = Clock()
+    b = WorkBudget(rate=0.5, burst=2.0, clock=clock)
+    assert b.available() == 2.0
+    assert b.take(1.5) == pytest.approx(0.5)
+    assert b.take(0.6) is None and b.refused == 1  # refused, nothing taken
+    assert b.available() == pytest.approx(0.5)
+    clock.now += 1.0  # 0.5 s of work per second
+    assert b.available() == pytest.approx(1.0)
+    assert b.take(1.0) == pytest.approx(0.0) and b.refused == 1
+    clock.now += 100.0  # never more than the burst
+    assert b.available() == 2.0
+    assert b.take(2.0) == pytest.approx(0.0)
+    b.settle(2.0, 0.5)  # reserved 2.0, cost 0.5: 1.5 comes back
+    assert b.available() == pytest.approx(1.5)
+    b.settle(0.0, 10.0)  # work that cost more than reserved is owed
+    assert b.available() == pytest.approx(-8.5)
+    assert b.take(0.0) is None and b.refused == 2
+    b.settle(100.0, 0.0)
+    assert b.available() == 2.0  # capped at the burst
+
+
+def test_the_gate_sits_at_the_chi_square_quantile_and_only_when_there_is_a_reading() -> None:
+    p, dof = 1e-3, 3
+    q = chi2.isf(p, dof)
+    assert not gated(StepInfo(nis=q * (1 - 1e-9), dof=dof), p)
+    assert gated(StepInfo(nis=q * (1 + 1e-9), dof=dof), p)
+    assert gated(StepInfo(nis=math.nan, dof=dof), p) and gated(StepInfo(nis=math.inf, dof=dof), p)
+    assert not gated(StepInfo(nis=1e9, dof=dof), 0.0)  # the gate is off
+    assert not gated(StepInfo(nis=1e9, dof=0), p)  # no reading, nothing to gate
+
+
+def test_the_control_log_gives_the_control_in_force_and_forgets_the_oldest() -> None:
+    log = ControlLog(cap=3, control_dim=2)
+    assert len(log) == 0 and np.array_equal(log.at(5.0), [0.0, 0.0])  # before any control
+    for t in (2.0, 1.0, 3.0):  # out of order
+        log.add(t, np.array([t, -t]))
+    assert len(log) == 3
+    assert np.array_equal(log.at(0.5), [0.0, 0.0])
+    assert np.array_equal(log.at(1.0), [1.0, -1.0]) and np.array_equal(log.at(1.0 - 1e-10), [1.0, -1.0])
+    assert np.array_equal(log.at(1.0 - 1e-6), [0.0, 0.0])
+    assert np.array_equal(log.at(2.5), [2.0, -2.0]) and np.array_equal(log.at(9.0), [3.0, -3.0])
+    log.add(4.0, np.array([4.0, -4.0]))  # over the cap: the oldest (t = 1) goes
+    assert len(log) == 3 and np.array_equal(log.at(1.5), [0.0, 0.0])
+    log.forget_before(3.5)  # the control in force at 3.5 (t = 3) stays
+    assert len(log) == 2 and np.array_equal(log.at(3.5), [3.0, -3.0])
+    log.forget_before(0.0)
+    assert len(log) == 2
+    log.clear()
+    assert len(log) == 0 and np.array_equal(log.at(9.0), [0.0, 0.0])

@@ -118,6 +118,7 @@ def trained(rover: System, tmp_path: Path) -> tuple[Path, Flight]:
     return out, drive(rover, 2, 300)
 
 
+@pytest.mark.slow
 def test_a_user_model_by_import_path_trains_and_tracks_every_kind(rover: System, trained) -> None:
     folder, test = trained
     assert rover.has_parametric and available_kinds(rover) == ("param", "gp", "egp", "hetgp", "sparse")
@@ -160,6 +161,7 @@ def test_sensors_of_one_type_share_one_gp_with_their_constants(rover: System, tr
         )
 
 
+@pytest.mark.slow
 def test_no_model_claims_less_noise_than_the_floors(rover: System, tmp_path: Path) -> None:
     """Floors above the sensor's real noise (range 0.05 m, bearing 0.02 rad) and the process
     noise: every kind's variances sit at or above them, though the models alone claim less."""

@@ -158,7 +158,7 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
     seg = round(s.track_seconds / test.dt)
     length = min(seg, round(s.pf_seconds / test.dt)) if filt == "pf" else seg
     rows = segments(len(test), seg, length)
-    with single_threaded_blas() if filt == "pf" else nullcontext():  # PF: 266 -> 177 ms per step
+    with single_threaded_blas() if filt == "pf" else nullcontext():  # docs/measurements.md#one-blas-thread
         scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
     out = {k: float(np.mean([sc[k] for sc in scores])) for k in scores[0]}
     out["nees_var"] /= len(scores)  # variances of the averages over the segments

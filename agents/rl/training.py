@@ -44,6 +44,7 @@ __all__ = [
 
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
 NORMALIZER_FILE = "vecnormalize.pkl"  # SB3's VecNormalize statistics, rl-zoo3's file name
+CHECKPOINTS = "checkpoints"  # the folder of periodic snapshots inside an agent's folder
 
 
 @dataclass(frozen=True)
@@ -182,7 +183,7 @@ def train_agent(
             ),
             CheckpointCallback(
                 save_freq=max(1, 5 * eval_freq // n_envs),
-                save_path=str(out / "checkpoints"),
+                save_path=str(out / CHECKPOINTS),
                 name_prefix="agent",
             ),
         ]
@@ -222,22 +223,32 @@ def _relative_models(spec: AgentSpec, folder: Path) -> AgentSpec:
 
 
 def agent_folder(path: str | Path) -> Path:
-    """The folder of a saved agent named by its folder or by its ``model.zip``."""
+    """The folder of a saved agent (its ``agent.json``) named by its folder or by one of its
+    model files: ``model.zip``, another ``.zip`` beside it, or a checkpoint in its
+    ``checkpoints/``."""
     path = Path(path)
-    return path.parent if path.suffix == ".zip" else path
+    if path.suffix != ".zip":
+        return path
+    beside = path.parent
+    if not (beside / "agent.json").is_file() and beside.name == CHECKPOINTS:
+        return beside.parent
+    return beside
 
 
 def load_agent(path: str | Path, models: str | Path | None = None) -> tuple[BaseAlgorithm, AgentSpec]:
-    """A saved agent (``model.zip``) and its :class:`AgentSpec` (``agent.json`` beside it).
+    """A saved agent and its :class:`AgentSpec`: ``path`` a folder (its ``model.zip``) or the
+    model file itself (e.g. a checkpoint), with ``agent.json`` in the agent's folder
+    (:func:`agent_folder`).
 
     The spec's model folder is resolved against the agent's folder (so an agent and its
     models can move together and be run from any directory); ``models`` overrides it.
     """
     folder = agent_folder(path)
-    spec_file, model_file = folder / "agent.json", folder / "model.zip"
+    model_file = Path(path) if Path(path).suffix == ".zip" else folder / "model.zip"
+    spec_file = folder / "agent.json"
     for f in (spec_file, model_file):
         if not f.is_file():
-            raise FileNotFoundError(f"agent {os.fspath(path)!r}: no {f.name} in {os.fspath(folder)!r}")
+            raise FileNotFoundError(f"agent {os.fspath(path)!r}: no {f.name} in {os.fspath(f.parent)!r}")
     spec = AgentSpec(**json.loads(spec_file.read_text()))
     if models is not None:
         spec = replace(spec, models=str(Path(models)))

@@ -12,6 +12,7 @@ from scipy.special import logsumexp
 from scipy.stats import chi2
 
 from estimator_service.angles import wrap_angle
+from estimator_service.frozen import normalise
 from estimator_service.reprs import short_repr
 
 __all__ = [
@@ -47,8 +48,7 @@ class GaussianBelief:
             raise ValueError(f"belief mean (n,) and cov (n, n) expected, got {m.shape}, {c.shape}")
         if not (math.isfinite(self.inflation) and self.inflation > 0):
             raise ValueError(f"belief inflation must be finite and > 0, got {self.inflation!r}")
-        object.__setattr__(self, "mean", m)
-        object.__setattr__(self, "cov", c)
+        normalise(self, mean=m, cov=c)
 
     def __repr__(self) -> str:
         with np.printoptions(precision=3, suppress=True, threshold=24, linewidth=400):

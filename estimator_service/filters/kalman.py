@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
@@ -79,11 +80,9 @@ class _GaussianFilter:
         check_adaptation(self.adapt_rate, self.max_inflation, self.adapt_reference)
         if self.adapt_states is not None:
             n = self.prediction.state_dim
-            idx = distinct_indices(self.adapt_states, n)
-            if idx is None:
+            if distinct_indices(self.adapt_states, n) is None:
                 bad = self.adapt_states
                 raise ValueError(f"adapt_states must be distinct state indices in [0, {n}), got {bad!r}")
-            object.__setattr__(self, "adapt_states", idx)
 
     def _factors(self, lam: FloatArray, n: int) -> FloatArray:
         """The factors on the process variance ``(B, n)`` for the beliefs' inflations ``(B,)``."""
@@ -231,10 +230,8 @@ class UKF(_GaussianFilter):
 
     ``alpha`` defaults to 1 (sigma points at ``+-sqrt(n + kappa)`` standard deviations), not
     the often quoted 1e-3: the mean weights then grow as ``1 / alpha^2`` (about 4e4 each for
-    n = 12) and amplify a model's rounding noise a million-fold. A GP's mean is accurate to
-    about 1e-8 of its scale, and measured on a held-out blimp flight (900-point GPs) the
-    GP-UKF diverged with alpha = 1e-3 (aggregate RMS 802 on one 2-minute segment) and
-    tracked at 10.2 with alpha = 1.
+    n = 12) and amplify a model's rounding noise a million-fold; a GP's mean is accurate to
+    about 1e-8 of its scale (measured: docs/measurements.md#ukf-alpha).
     """
 
     __repr__ = short_repr
@@ -251,15 +248,17 @@ class UKF(_GaussianFilter):
     max_inflation: float = MAX_INFLATION
     adapt_reference: float = 1.0
     adapt_states: tuple[int, ...] | None = None
-    _w: tuple[FloatArray, FloatArray, float] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.noise not in ("mean", "sigma"):
             raise ValueError(f"noise must be 'mean' or 'sigma', got {self.noise!r}")
         self._check_adaptation()
-        object.__setattr__(
-            self, "_w", sigma_weights(self.prediction.state_dim, self.alpha, self.beta, self.kappa)
-        )
+        _ = self._w  # the weights are checked (and held) with the filter
+
+    @functools.cached_property
+    def _w(self) -> tuple[FloatArray, FloatArray, float]:
+        """Mean and covariance weights and ``gamma`` (:func:`sigma_weights`)."""
+        return sigma_weights(self.prediction.state_dim, self.alpha, self.beta, self.kappa)
 
     def sigma_points(self, belief: GaussianBelief) -> FloatArray:
         """``(2n + 1, n)``: the mean, then ``mean +- gamma`` times the Cholesky columns (NaN

@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import functools
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,11 +30,8 @@ FloatArray = NDArray[np.float64]
 #: more queries than this, a prediction with variances goes output by output over threads
 #: (kernel block, mean, variance by the inverse factor's row blocks); up to it, all outputs at
 #: once: one kernel block, one stacked product per row block
-#: (:meth:`~estimator_service.gp.inverse.InverseBlocks.sq_norms`). 12 outputs, d = 16, whole
-#: latent prediction, ms, by output -> all at once, one core / two: n = 300, 16 queries:
-#: 1.69 -> 0.98 / 2.42 -> 1.16; 64 queries: 4.97 -> 3.72 / 3.99 -> 3.69; n = 900, 16 queries:
-#: 11.8 -> 12.7 / 9.3 -> 8.5; 64: 26.7 -> 27.7 / 14.9 -> 18.8; 2,000 queries, two cores:
-#: 71 -> 92 (n = 300), 347 -> 403 (n = 900)
+#: (:meth:`~estimator_service.gp.inverse.InverseBlocks.sq_norms`); measured:
+#: docs/measurements.md#exact-gp-stacked-queries
 STACKED_MAX_QUERIES = 32
 _CHUNK_BYTES = 256 * 2**20  # cap on the (P, M, n) kernel block held at once
 
@@ -78,21 +76,23 @@ class ExactGP:
     kind: str = "exact"
     inverse: bool = True
 
-    _kernel: CrossKernel = field(init=False, repr=False)
-    _linv: list = field(init=False, repr=False)  # [InverseBlocks] once computed
-
     def __post_init__(self) -> None:
         for arr in (self.theta, self.x_train, self.chol_t, self.alpha):
             arr.flags.writeable = False
-        object.__setattr__(self, "_kernel", CrossKernel.build(self.x_train, self.theta, self.alpha))
-        object.__setattr__(self, "_linv", [])  # filled on the first variance request
+        _ = self._kernel  # built with the posterior; the inverse factors on the first variance request
+
+    @functools.cached_property
+    def _kernel(self) -> CrossKernel:
+        return CrossKernel.build(self.x_train, self.theta, self.alpha)
 
     def inverse_blocks(self) -> InverseBlocks:
         """The outputs' ``L^-1`` as row blocks (computed on the first call, then held)."""
-        if not self._linv:  # once; a race only computes the same factors twice
-            factors = (inverse_factor(self.chol_t[p].T) for p in range(self.output_dim))
-            self._linv[:] = [InverseBlocks.from_factors(factors, self.output_dim, self.alpha.shape[1])]
-        return self._linv[0]
+        return self._inverse_blocks
+
+    @functools.cached_property
+    def _inverse_blocks(self) -> InverseBlocks:
+        factors = (inverse_factor(self.chol_t[p].T) for p in range(self.output_dim))
+        return InverseBlocks.from_factors(factors, self.output_dim, self.alpha.shape[1])
 
     @classmethod
     def from_theta(

@@ -142,7 +142,7 @@ def learn_thetas(
     """
     bounds = theta_bounds(xs.shape[1])
     out = []
-    with single_threaded_blas():  # bench_training: 53.8 -> 42.6 ms per n = 900 evaluation
+    with single_threaded_blas():  # docs/measurements.md#one-blas-thread
         for p in range(ys.shape[1]):
             prof = None if profile is None else profile[p]
             args = (bounds, max_iter, name, p, callback, prof, subset, polish_iter)

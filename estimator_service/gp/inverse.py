@@ -9,10 +9,7 @@ holds ``(B + 1) / (2B)`` of the square (7/12 for six blocks), and one step of a 
 filter reads the blocks once, in a few stacked products, whatever the number of outputs.
 
 Cold caches make this memory-bound: a batched filter step reads every factor once between
-simulator steps. Measured on this machine (one core, caches flushed before each call, 12
-outputs, 16 queries, n = 300): strided column blocks of the full square 1.40 ms, the same
-work on contiguous blocks 0.73 ms; one query, n = 300: 12 triangular products (``trmv``)
-0.58 ms, the blocks 0.39 ms; n = 900: 3.32 -> 2.82 ms.
+simulator steps (measured: docs/measurements.md#inverse-factor-row-blocks).
 """
 
 from __future__ import annotations
@@ -33,11 +30,9 @@ __all__ = ["BLOCKS", "THREADED_MIN_BYTES", "InverseBlocks"]
 FloatArray = NDArray[np.float64]
 
 #: blocks bytes from which :meth:`InverseBlocks.sq_norms_threaded` splits the outputs over
-#: the BLAS threads (one query, 12 outputs, two cores: n = 900, 45 MB: 3.04 -> 2.02 ms; n =
-#: 300, 5 MB: 0.16 -> 0.57 ms, the threads' fixed cost)
+#: the BLAS threads (measured: docs/measurements.md#inverse-factor-row-blocks)
 THREADED_MIN_BYTES = 16 * 2**20
-#: row blocks of ``L^-1`` (n = 300, 12 outputs, 16 queries, warm caches: 1 block (the square)
-#: 1.13 ms, 2: 0.60, 3: 0.55, 6: 0.53; cold: 3 blocks 1.07 ms, 6: 0.73, 12: 0.77)
+#: row blocks of ``L^-1`` (measured: docs/measurements.md#inverse-factor-row-blocks)
 BLOCKS = 6
 
 

@@ -33,8 +33,7 @@ _BLAS = ThreadpoolController()
 @contextmanager
 def single_threaded_blas() -> Iterator[None]:
     """Context: BLAS on one thread. For many small solves, as in a sparse GP, the second BLAS
-    thread only spins against the main thread: measured 42.8 -> 18.8 ms for the variance of
-    2,000 queries x 12 outputs with m = 50 on this 2-core machine.
+    thread only spins against the main thread (measured: docs/measurements.md#one-blas-thread).
 
     Safe from several threads at once: the first to enter sets one thread, the last to
     leave restores what was there (nested limits from different threads would otherwise

@@ -9,8 +9,9 @@ variance per query and output.
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
@@ -40,9 +41,8 @@ from estimator_service.reprs import short_repr
 __all__ = ["SparseGP", "fit_sparse", "sparse_nll"]
 
 FloatArray = NDArray[np.float64]
-#: queries above which a batch goes output by output over threads (12 outputs, m = 50, this
-#: 2-core machine, stacked -> by output: 200 queries 1.47 -> 1.58 ms, 500: 3.42 -> 4.02,
-#: 800: 7.65 -> 4.88, 2,000: 13.5 -> 7.95; 10 outputs: 800 queries 4.57 -> 3.51)
+#: queries above which a batch goes output by output over threads; measured:
+#: docs/measurements.md#sparse-gp-queries-by-output
 BY_OUTPUT_MIN_QUERIES = 600
 
 
@@ -146,30 +146,30 @@ class SparseGP:
     kind: str = "sparse"
     inverse: bool = True
 
-    _kernel: CrossKernel = field(init=False, repr=False)
-    _inv: list = field(init=False, repr=False)
-    _proj: list = field(init=False, repr=False)
-
     def __post_init__(self) -> None:
         for arr in (self.theta, self.pseudo_inputs, self.beta, self.chol_mm_t, self.chol_b_t):
             arr.flags.writeable = False
-        object.__setattr__(self, "_kernel", CrossKernel.build(self.pseudo_inputs, self.theta, self.beta))
-        object.__setattr__(self, "_inv", [])  # filled on the first variance request
-        object.__setattr__(self, "_proj", [])
+        _ = self._kernel  # built with the posterior; the inverse factors on the first variance request
+
+    @functools.cached_property
+    def _kernel(self) -> CrossKernel:
+        return CrossKernel.build(self.pseudo_inputs, self.theta, self.beta)
 
     def inverse_factors(self) -> tuple[FloatArray, FloatArray] | None:
         """``L_m^-1`` and ``L_B^-1``, each ``(P, m, m)``, or None where the solves are kept
         (some output's factor is too ill-conditioned for the product to match them)."""
-        if not self._inv:  # once; a race only computes the same factors twice
-            lm = [inverse_factor(t.T) for t in self.chol_mm_t]
-            lb = [inverse_factor(t.T) for t in self.chol_b_t]
-            both = None
-            if all(f is not None for f in lm + lb):
-                both = (np.stack(lm), np.stack(lb))
-                for f in both:
-                    f.flags.writeable = False
-            self._inv[:] = [both]
-        return self._inv[0]
+        return self._inverse_factors
+
+    @functools.cached_property
+    def _inverse_factors(self) -> tuple[FloatArray, FloatArray] | None:
+        lm = [inverse_factor(t.T) for t in self.chol_mm_t]
+        lb = [inverse_factor(t.T) for t in self.chol_b_t]
+        if not all(f is not None for f in lm + lb):
+            return None
+        both = (np.stack(lm), np.stack(lb))
+        for f in both:
+            f.flags.writeable = False
+        return both
 
     @classmethod
     def from_params(
@@ -225,20 +225,20 @@ class SparseGP:
         rounding because ``|L_B^-1| <= 1``), ``G = diag(sqrt(mu)) U^T L_m^-1``: one ``m x m``
         product per query instead of two, and the mean in the same product.
         """
-        if not self._proj:  # once; a race only computes the same matrix twice
-            inv = self.inverse_factors()
-            proj = None
-            if inv is not None:
-                lmi, lbi = inv
-                b_inv = lbi.transpose(0, 2, 1) @ lbi
-                mu, u = np.linalg.eigh(np.eye(b_inv.shape[-1]) - b_inv)
-                g = np.sqrt(np.clip(mu, 0.0, 1.0))[:, :, None] * (u.transpose(0, 2, 1) @ lmi)
-                proj = np.ascontiguousarray(
-                    np.concatenate([g.transpose(0, 2, 1), self.beta[:, :, None]], axis=2)
-                )
-                proj.flags.writeable = False
-            self._proj[:] = [proj]
-        return self._proj[0]
+        return self._projection
+
+    @functools.cached_property
+    def _projection(self) -> FloatArray | None:
+        inv = self.inverse_factors()
+        if inv is None:
+            return None
+        lmi, lbi = inv
+        b_inv = lbi.transpose(0, 2, 1) @ lbi
+        mu, u = np.linalg.eigh(np.eye(b_inv.shape[-1]) - b_inv)
+        g = np.sqrt(np.clip(mu, 0.0, 1.0))[:, :, None] * (u.transpose(0, 2, 1) @ lmi)
+        proj = np.ascontiguousarray(np.concatenate([g.transpose(0, 2, 1), self.beta[:, :, None]], axis=2))
+        proj.flags.writeable = False
+        return proj
 
     def latent(
         self, xs: FloatArray, return_var: bool, return_jac: bool
@@ -324,7 +324,7 @@ def fit_sparse(
     n, d = xs.shape
     bounds = theta_bounds(d) + [(None, None)] * (n_pseudo * d)
     thetas, zs = [], []
-    for p in range(ys.shape[1]):  # one BLAS thread: 15.5 -> 1.6 ms per evaluation (n 900, m 50)
+    for p in range(ys.shape[1]):  # one BLAS thread: docs/measurements.md#one-blas-thread
         starts = [
             np.concatenate([t, xs[rng.choice(n, n_pseudo, replace=False)].ravel()])
             for t in initial_thetas(xs, max(1, restarts), rng)

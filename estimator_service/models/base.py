@@ -8,7 +8,7 @@ batched over rows; noise is diagonal (one independent GP per output, paper Sect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -116,12 +116,14 @@ class LinearGaussianPrediction:
     a: FloatArray
     b: FloatArray
     q: FloatArray
-    state_dim: int = field(init=False)
-    control_dim: int = field(init=False)
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "state_dim", self.a.shape[0])
-        object.__setattr__(self, "control_dim", self.b.shape[1])
+    @property
+    def state_dim(self) -> int:
+        return self.a.shape[0]
+
+    @property
+    def control_dim(self) -> int:
+        return self.b.shape[1]
 
     def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         uu = controls_for(u, x.shape[0])
@@ -136,12 +138,14 @@ class LinearGaussianObservation:
 
     h: FloatArray
     r: FloatArray
-    state_dim: int = field(init=False)
-    obs_dim: int = field(init=False)
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "state_dim", self.h.shape[1])
-        object.__setattr__(self, "obs_dim", self.h.shape[0])
+    @property
+    def state_dim(self) -> int:
+        return self.h.shape[1]
+
+    @property
+    def obs_dim(self) -> int:
+        return self.h.shape[0]
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         z = x @ self.h.T

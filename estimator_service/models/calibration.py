@@ -24,15 +24,8 @@ written by :func:`estimator_service.training.train_models`). One prediction that
 belief wider than everything the state did in training says the model knows less than
 nothing (the law of total variance bounds the mean conditional variance by the marginal
 one); the matching gets far past that only when an output's errors grow with its noise,
-and the EKF's linearisation then fails. Measured (lab world, paper-size reproduce, the
-committed seed-0 report's fold-3 models): the hetGP's roll rate was matched to 875 times
-its one-step variance, which put its process variance above the roll rate's variance in
-training on every held-out step and up to 195 times it (process std 0.46 rad/s per step
-against a spread of 0.033 rad/s); the belief's roll-rate std grew to 8 rad/s and the
-hetGP-EKF diverged (position RMS 5.9e21 mm). The largest legitimate excess seen was the
-parametric model's roll angle on seed 1's fold 0, up to 2.5 times the state's variance,
-which the calibration needs (the parametric model has no roll physics), hence a factor of
-10 rather than 1.
+and the EKF's linearisation then fails. A factor of 10 rather than 1 (measured:
+docs/measurements.md#process-variance-ceiling).
 """
 
 from __future__ import annotations
@@ -47,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimator_service.files import atomic_write_text
+from estimator_service.frozen import normalise
 from estimator_service.models.base import ModelOutput, ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
@@ -100,7 +94,7 @@ class NoiseScaledPrediction:
         if s.ndim > 2 or (s.ndim >= 1 and s.shape[-1] != n) or not np.all(np.isfinite(s) & (s > 0)):
             raise ValueError(f"noise scale must be finite and > 0, one number, {n} or rows of {n}, got {s!r}")
         if self.ceiling is not None:
-            object.__setattr__(self, "ceiling", _ceiling(self.ceiling, n))
+            normalise(self, ceiling=_ceiling(self.ceiling, n))
 
     @property
     def state_dim(self) -> int:
@@ -169,7 +163,7 @@ class NoiseScaledObservation:
             raise ValueError(
                 f"observation noise scale must be {self.inner.obs_dim} finite numbers > 0, got {self.scale!r}"
             )
-        object.__setattr__(self, "scale", s)
+        normalise(self, scale=s)
 
     @property
     def state_dim(self) -> int:

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,12 +32,14 @@ class GPPredictionModel:
 
     gp: GPModel
     state_dim: int
-    control_dim: int = field(init=False)
 
     def __post_init__(self) -> None:
         if self.gp.output_dim != self.state_dim:
             raise ValueError(f"prediction GP has {self.gp.output_dim} outputs, state has {self.state_dim}")
-        object.__setattr__(self, "control_dim", self.gp.input_dim - self.state_dim)
+
+    @property
+    def control_dim(self) -> int:
+        return self.gp.input_dim - self.state_dim
 
     def predict(self, x: FloatArray, u: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         inp = np.concatenate([x, controls_for(u, x.shape[0])], axis=1)
@@ -52,12 +55,14 @@ class GPObservationModel:
     __repr__ = short_repr
 
     gp: GPModel
-    state_dim: int = field(init=False)
-    obs_dim: int = field(init=False)
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "state_dim", self.gp.input_dim)
-        object.__setattr__(self, "obs_dim", self.gp.output_dim)
+    @property
+    def state_dim(self) -> int:
+        return self.gp.input_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return self.gp.output_dim
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         p = self.gp.predict(x, return_var=var, return_jac=jac)
@@ -82,13 +87,14 @@ class SharedGPObservation:
 
     gp: GPModel
     constants: FloatArray
-    state_dim: int = field(init=False)
-    obs_dim: int = field(init=False)
 
-    def __post_init__(self) -> None:
-        s, c = self.constants.shape
-        object.__setattr__(self, "state_dim", self.gp.input_dim - c)
-        object.__setattr__(self, "obs_dim", s * self.gp.output_dim)
+    @property
+    def state_dim(self) -> int:
+        return self.gp.input_dim - self.constants.shape[1]
+
+    @property
+    def obs_dim(self) -> int:
+        return len(self.constants) * self.gp.output_dim
 
     def observe(self, x: FloatArray, *, jac: bool = False, var: bool = True) -> ModelOutput:
         return self._sensors(x, self.constants, jac, var)
@@ -119,23 +125,30 @@ class StackedObservationModel:
 
     parts: tuple
     columns: tuple[NDArray[np.intp], ...] | None = None
-    state_dim: int = field(init=False)
-    obs_dim: int = field(init=False)
-    _order: NDArray[np.intp] | None = field(init=False, repr=False, default=None)
 
     def __post_init__(self) -> None:
         dims = {p.state_dim for p in self.parts}
         if len(dims) != 1:
             raise ValueError(f"stacked observation models disagree on the state size: {dims}")
-        object.__setattr__(self, "state_dim", dims.pop())
-        m = sum(p.obs_dim for p in self.parts)
-        object.__setattr__(self, "obs_dim", m)
         if self.columns is not None:
             cols = np.concatenate([np.asarray(c, dtype=np.intp) for c in self.columns])
             sizes = [len(c) for c in self.columns]
-            if sizes != [p.obs_dim for p in self.parts] or not np.array_equal(np.sort(cols), np.arange(m)):
+            whole = np.arange(self.obs_dim)
+            if sizes != [p.obs_dim for p in self.parts] or not np.array_equal(np.sort(cols), whole):
                 raise ValueError("stacked observation models' columns must cover the observation once")
-            object.__setattr__(self, "_order", np.argsort(cols))  # part-major -> observation order
+
+    @property
+    def state_dim(self) -> int:
+        return self.parts[0].state_dim
+
+    @property
+    def obs_dim(self) -> int:
+        return sum(p.obs_dim for p in self.parts)
+
+    @functools.cached_property
+    def _order(self) -> NDArray[np.intp] | None:
+        """Part-major -> observation order (``None``: the parts one after another)."""
+        return None if self.columns is None else np.argsort(np.concatenate(self._placement()))
 
     def observe_columns(self, x: FloatArray, cols: NDArray[np.intp], *, jac: bool = False,
                         var: bool = True) -> ModelOutput:  # fmt: skip

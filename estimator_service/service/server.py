@@ -21,11 +21,11 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from estimator_service.cli_args import Parser, add_filter_options, checked_int
+from estimator_service.cli_args import Parser, add_filter_options, checked_int, model_kind
 from estimator_service.factory import adaptation_defaults, load_models, make_filter, warm_up
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
@@ -43,8 +43,13 @@ from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION,
 from estimator_service.service.session import Session, SessionSettings
 from estimator_service.service.workers import WorkerPool
 from estimator_service.store import model_version, read_system
+from estimator_service.system import System
 
-__all__ = ["WATCH_TICK_S", "EstimatorService", "ServiceConfig", "main", "zenoh_config"]
+if TYPE_CHECKING:
+    from estimator_service.filters import EKF, PF, UKF
+    from estimator_service.models.base import ObservationModel, PredictionModel
+
+__all__ = ["WATCH_TICK_S", "EstimatorService", "ServiceConfig", "main", "service_filter", "zenoh_config"]
 
 WATCH_TICK_S = 0.25  # the freeze watchdog's tick (see Limits.fence_after_s)
 
@@ -64,6 +69,21 @@ class ServiceConfig:
     workers: int = 2
     limits: Limits = field(default_factory=Limits)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+
+
+def service_filter(
+    config: ServiceConfig, system: System, filter_name: str, model: str,
+    models: tuple[PredictionModel, ObservationModel],
+) -> EKF | UKF | PF:  # fmt: skip
+    """The filter the service runs for ``filter_name`` on ``model``'s fitted ``models``: the
+    particle count from ``config``; for a Gaussian filter the model folder's adaptation
+    defaults, with the configured rate (0 included: off) in place of the folder's."""
+    opts: dict[str, object] = {"n_particles": config.n_particles}
+    if filter_name != "pf":
+        opts = adaptation_defaults(config.model_dir, model)
+        if config.adapt_rate is not None:
+            opts["adapt_rate"] = config.adapt_rate
+    return make_filter(filter_name, *models, system=system, **opts)
 
 
 class EstimatorService:
@@ -115,12 +135,7 @@ class EstimatorService:
             if key not in self._filters:
                 if model not in self._models:
                     self._models[model] = load_models(self.config.model_dir, model)
-                opts: dict[str, object] = {"n_particles": self.config.n_particles}
-                if filter_name != "pf":  # the configured rate, 0 included (off), else the folder's
-                    opts = adaptation_defaults(self.config.model_dir, model)
-                    if self.config.adapt_rate is not None:
-                        opts["adapt_rate"] = self.config.adapt_rate
-                filt = make_filter(filter_name, *self._models[model], system=self.system, **opts)
+                filt = service_filter(self.config, self.system, filter_name, model, self._models[model])
                 warm_up(filt, self.system)  # caches now, not in a blimp's first step
                 self._filters[key] = filt
             return self._filters[key]
@@ -369,19 +384,19 @@ def main(argv: list[str] | None = None) -> int:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(blas_threads_for(args.blas_threads, args.workers))
-    cfg = ServiceConfig(
-        args.models,
-        args.filter,
-        args.model,
-        tuple(args.listen or (DEFAULT_ENDPOINT,)),
-        tuple(args.connect),
-        args.zenoh_config,
-        args.particles,
-        args.adapt,
-        args.workers,
-        limits_from(args),
-    )
     try:
+        cfg = ServiceConfig(
+            args.models,
+            args.filter,
+            model_kind(args),
+            tuple(args.listen or (DEFAULT_ENDPOINT,)),
+            tuple(args.connect),
+            args.zenoh_config,
+            args.particles,
+            args.adapt,
+            args.workers,
+            limits_from(args),
+        )
         service = EstimatorService(cfg)
     except (OSError, ValueError, zenoh.ZError) as exc:
         print(f"gpbf serve: error: {zenoh_message(exc)}", file=sys.stderr)

@@ -1,0 +1,140 @@
+"""Summarise a finished ``mutmut run`` (``make mutate``) into ``results.json`` and ``report.md``.
+
+Reads mutmut's per-file results under ``mutants/`` and writes, beside this script:
+
+- ``results.json``: ``killed``, ``survived``, ``no_tests``, ``timeout``, ``total`` and
+  ``killed_ratio`` (killed and timed-out mutants over all mutants run: a mutant no test
+  reaches counts as surviving), the same per module, and every surviving mutant with its
+  one-line change and its reason from ``reasons.json`` (``--reasons``) (``"equivalent: ..."`` or
+  ``"test to add: ..."``); a survivor without a reason is listed as ``unexplained``.
+- ``report.md``: the same for a reader.
+
+Run from the repository root after ``mutmut run``: ``python docs/results/mutation/summarise.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+KILLED = {"killed", "timeout", "segfault", "caught by type check"}
+NOT_RUN = {"skipped", "not checked", "check was interrupted by user"}
+
+
+def _status_and_diffs(names: set[str]) -> tuple[dict[str, dict[str, str]], dict[str, str]]:
+    """Per module, each mutant's status; the changed lines of the mutants in ``names``."""
+    from mutmut.mutation.data import SourceFileMutationData
+    from mutmut.mutation.diff_apply import get_diff_for_mutant
+    from mutmut.stats import status_by_exit_code
+    from mutmut.utils.file_utils import walk_mutatable_files
+
+    status: dict[str, dict[str, str]] = {}
+    diffs: dict[str, str] = {}
+    for path in walk_mutatable_files():
+        data = SourceFileMutationData(path=path)
+        data.load()
+        status[str(path)] = {k: status_by_exit_code[v] for k, v in data.exit_code_by_key.items()}
+        for key in status[str(path)]:
+            if key in names:
+                diffs[key] = _changed_lines(get_diff_for_mutant(key, path=path))
+    return status, diffs
+
+
+def _changed_lines(diff: str) -> str:
+    """``- old`` / ``+ new`` lines of a unified diff, stripped, on one line."""
+    lines = [ln for ln in diff.splitlines() if ln[:1] in "+-" and ln[:3] not in ("+++", "---")]
+    return " | ".join(f"{ln[0]} {ln[1:].strip()}" for ln in lines)
+
+
+def _ratio(counts: Counter) -> float:
+    run = sum(n for s, n in counts.items() if s not in NOT_RUN)
+    return sum(counts[s] for s in KILLED) / run if run else float("nan")
+
+
+def summarise(reasons: dict[str, str]) -> dict:
+    """The results document (see the module docstring)."""
+    status, _ = _status_and_diffs(set())
+    surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
+    status, diffs = _status_and_diffs(surviving)
+    modules, total = {}, Counter()
+    for path, per in sorted(status.items()):
+        counts = Counter(per.values())
+        total += counts
+        if per:
+            modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts)}
+    survivors = [
+        {"mutant": k, "status": s, "change": diffs.get(k, ""), "reason": reasons.get(k, "unexplained")}
+        for per in status.values() for k, s in sorted(per.items()) if k in surviving
+    ]  # fmt: skip
+    explained = sum(r["reason"] != "unexplained" for r in survivors)
+    return {
+        **_named(total), "total": sum(total.values()), "killed_ratio": round(_ratio(total), 4),
+        "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
+        "modules": modules, "survivors": survivors,
+    }  # fmt: skip
+
+
+def _named(counts: Counter) -> dict[str, int]:
+    return {
+        "killed": counts["killed"] + counts["segfault"] + counts["caught by type check"],
+        "timeout": counts["timeout"], "survived": counts["survived"] + counts["suspicious"],
+        "no_tests": counts["no tests"], "not_run": sum(counts[s] for s in NOT_RUN),
+    }  # fmt: skip
+
+
+def report(res: dict) -> str:
+    """``res`` as markdown."""
+    head = [
+        "# Mutation testing: the equations and the service's limits",
+        "",
+        "One operator, constant, name or argument of the code changed at a time (a *mutant*, made by",
+        "[mutmut](https://github.com/boxed/mutmut) 3); the unit tests that reach the changed",
+        "function run against it (`make mutate`; the configuration is `[tool.mutmut]` in",
+        "`pyproject.toml`: `estimator_service/filters`, `gp`, `models` and `service/limits.py`;",
+        "tests marked `slow` are left out; `raise` statements keep their message text). A mutant",
+        "is *killed* when a test fails or it times out; one that no test reaches counts as surviving.",
+        "",
+        f"**killed ratio {res['killed_ratio']:.3f}** ({res['killed']} killed, {res['timeout']} timed out,",
+        f"{res['survived']} survived, {res['no_tests']} reached by no test, of {res['total']});",
+        f"survivors explained: {res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
+        "",
+        "| module | mutants | killed ratio | survived | no test |",
+        "|---|---|---|---|---|",
+    ]
+    rows = [
+        f"| `{m}` | {v['total']} | {v['killed_ratio']:.3f} | {v['survived']} | {v['no_tests']} |"
+        for m, v in res["modules"].items()
+    ]
+    tail = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
+    tail += [
+        f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in res["survivors"]
+    ]
+    return "\n".join([*head, *rows, *tail]) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=HERE, help="folder for results.json and report.md")
+    ap.add_argument(
+        "--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons: {mutant: reason}"
+    )
+    args = ap.parse_args(argv)
+    if not Path("mutants").is_dir():
+        print("no mutants/ folder here: run `make mutate` from the repository root", file=sys.stderr)
+        return 2
+    reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
+    res = summarise(reasons)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    (args.out / "report.md").write_text(report(res))
+    keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "total", "survivors_unexplained")
+    print(json.dumps({k: res[k] for k in keys}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
