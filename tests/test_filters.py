@@ -585,3 +585,245 @@ def test_adaptive_ekf_batched_equals_one_at_a_time_and_the_pf_refuses_the_option
         EKF(PRED, OBS, adapt_rate=math.nan)
     with pytest.raises(ValueError, match="max_inflation"):
         UKF(PRED, OBS, adapt_rate=0.5, max_inflation=0.5)
+
+
+# --- the filters' contracts, field by field (each check below failed a mutant of the code) ---
+
+
+@dataclass(frozen=True)
+class NoisyWhereFar:
+    """Identity dynamics with process variance ``0.01 + x^2`` per component."""
+
+    state_dim: int = 2
+    control_dim: int = 1
+
+    def predict(self, x, u, *, jac=False, var=True) -> ModelOutput:
+        j = np.zeros((len(x), 2, 2)) if jac else None
+        return ModelOutput(np.zeros_like(x), 0.01 + x**2, j)
+
+
+@dataclass(frozen=True)
+class FirstWithNoise:
+    """``z = x_0 + 0.3 x_0^2`` with noise variance ``0.01 + x_0^2``."""
+
+    state_dim: int = 2
+    obs_dim: int = 1
+
+    def observe(self, x, *, jac=False, var=True) -> ModelOutput:
+        j = np.concatenate([1 + 0.6 * x[:, :1], np.zeros((len(x), 1))], axis=1)[:, None, :] if jac else None
+        return ModelOutput(x[:, :1] + 0.3 * x[:, :1] ** 2, 0.01 + x[:, :1] ** 2, j)
+
+
+def test_the_ukf_takes_noise_at_the_mean_or_averaged_over_the_sigma_points_as_asked() -> None:
+    """``noise="mean"``: ``Q`` and ``R`` at the mean (the paper); ``noise="sigma"``: their plain
+    average over the ``2n + 1`` sigma points. Worked by hand from the sigma points."""
+    prior = GaussianBelief(np.array([0.4, -0.3]), np.array([[0.2, 0.05], [0.05, 0.1]]), inflation=1.0)
+    for noise in ("mean", "sigma"):
+        ukf = UKF(NoisyWhereFar(), FirstWithNoise(), noise=noise)
+        pts = ukf.sigma_points(prior)
+        wm, wc, _ = sigma_weights(2, ukf.alpha, ukf.beta, ukf.kappa)
+        dev = pts - wm @ pts
+        q = 0.01 + (prior.mean**2 if noise == "mean" else np.mean(pts**2, axis=0))
+        pred = ukf.predict(prior, np.zeros(1))
+        np.testing.assert_allclose(pred.cov, (dev * wc[:, None]).T @ dev + np.diag(q), rtol=1e-12)
+        post, info = ukf.update(prior, np.array([0.9]), np.array([True]))
+        zs = pts[:, 0] + 0.3 * pts[:, 0] ** 2
+        r = 0.01 + (prior.mean[0] ** 2 if noise == "mean" else np.mean(pts[:, 0] ** 2))
+        zhat = wm @ zs
+        s = wc @ (zs - zhat) ** 2 + r
+        assert info.nis == pytest.approx((0.9 - zhat) ** 2 / s, rel=1e-12) and info.dof == 1
+        pxz = (wc * (zs - zhat)) @ (pts - prior.mean)  # the state's deviations from the prior mean
+        np.testing.assert_allclose(post.mean, prior.mean + pxz / s * (0.9 - zhat), rtol=1e-12)
+        np.testing.assert_allclose(post.cov, prior.cov - np.outer(pxz, pxz) / s, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_a_beliefs_inflation_survives_its_steps_and_failed_sigma_points(cls) -> None:
+    f = cls(PRED, OBS)
+    inflated = GaussianBelief(PRIOR.mean, PRIOR.cov, inflation=2.5)
+    assert f.predict(inflated, np.zeros(2)).inflation == 2.5
+    broken = GaussianBelief(PRIOR.mean, np.full((4, 4), np.nan), inflation=2.5)
+    out = f.predict_many([broken, inflated], np.zeros((2, 2)))
+    assert np.isnan(out[0].cov).all() and out[0].inflation == 2.5
+    assert np.isnan(out[0].mean).all() == (cls is UKF)  # the EKF moves the mean without the covariance
+    assert out[1].inflation == 2.5 and np.isfinite(out[1].cov).all()
+
+
+def test_an_unusable_belief_in_a_ukf_batch_refuses_only_its_own_update() -> None:
+    ukf = UKF(PRED, OBS)
+    broken = GaussianBelief(PRIOR.mean, np.full((4, 4), np.nan))
+    z, valid = np.array([[0.4, -0.1, 0.3]] * 3), np.array([[True, True, False]] * 3)
+    out = ukf.update_many([PRIOR, broken, PRIOR], z, valid)
+    assert out[1][0] is broken and out[1][1].diverged and out[1][1].dof == 2
+    assert math.isnan(out[1][1].nis)
+    alone = ukf.update(PRIOR, z[2], valid[2])
+    for post, info in (out[0], out[2]):  # the beliefs after the broken one are still updated
+        np.testing.assert_allclose(post.mean, alone[0].mean, rtol=1e-12)
+        assert info.dof == 2 and not info.diverged
+    assert np.isnan(ukf.sigma_points(broken)).all() and ukf.sigma_points(broken).shape == (9, 4)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_an_update_reads_only_the_valid_entries(cls) -> None:
+    f = cls(PRED, OBS)
+    z = np.array([0.4, 99.0, 99.0])  # the invalid entries would pull the belief far away
+    post, info = f.update(PRIOR, z, np.array([True, False, False]))
+    only = cls(PRED, LinearGaussianObservation(H[:1], R[:1])).update(PRIOR, z[:1])
+    np.testing.assert_allclose(post.mean, only[0].mean, rtol=1e-12)
+    assert info.dof == 1 and info.nis == pytest.approx(only[1].nis, rel=1e-12)
+
+
+def test_an_implausible_innovation_is_flagged_by_the_ukf_update() -> None:
+    info = UKF(PRED, OBS).update(PRIOR, np.array([40.0, 0.0, 0.0]), np.ones(3, bool))[1]
+    assert info.diverged and info.nis > 1e3 and info.dof == 3
+
+
+def test_a_refused_update_reports_its_nis_and_no_degrees_of_freedom() -> None:
+    from estimator_service.filters.common import StepInfo
+
+    info = StepInfo(7.5, 3, True, 12.0, True).refused()
+    assert (info.nis, info.dof, info.gated) == (7.5, 0, True)
+    assert info.diverged is False and info.resampled is False and info.ess is None
+
+
+def test_the_ukf_refuses_weights_that_do_not_exist_by_name() -> None:
+    with pytest.raises(ValueError, match=r"alpha > 0 and n \+ kappa > 0 \(n = 4\), got 1.0, -4"):
+        UKF(PRED, OBS, kappa=-4)
+    with pytest.raises(ValueError, match="alpha > 0"):
+        UKF(PRED, OBS, alpha=0.0)
+
+
+def test_the_particle_mean_of_angles_uses_each_components_own_period() -> None:
+    """An ellipse orientation (period pi) and a heading (2 pi) averaged on their circles, a
+    position linearly: three particles straddling each cut."""
+    wrap = Wrapping(np.array([0.0, math.pi, 2 * math.pi]), np.zeros(1))
+    x = np.array([[1.0, 1.5, 3.0], [2.0, -1.5, -3.0], [4.0, 1.5, 3.1]])
+    w = np.array([0.5, 0.25, 0.25])
+    mean = wrap.circular_mean(x, w)
+    assert mean[0] == pytest.approx(w @ x[:, 0])
+    for k, p in ((1, math.pi), (2, 2 * math.pi)):
+        a = 2 * math.pi * x[:, k] / p
+        assert mean[k] == pytest.approx(p / (2 * math.pi) * math.atan2(w @ np.sin(a), w @ np.cos(a)))
+    assert abs(mean[1]) > 1.3 and abs(mean[2]) > 2.9  # near the cut, not near 0
+
+
+def test_a_gaussian_belief_prints_its_mean_and_standard_deviations() -> None:
+    b = GaussianBelief(np.array([1.23456, 2e-5]), np.diag([4.0, 9.0]))
+    assert repr(b) == "GaussianBelief(mean=[1.235 0.   ], std=[2. 3.])"
+    long = repr(GaussianBelief(np.arange(25.0), np.eye(25)))
+    assert "..." in long and "..." not in repr(GaussianBelief(np.arange(24.0), np.eye(24)))
+
+
+def test_the_adaptive_factor_follows_its_documented_rule() -> None:
+    """``lambda' = clip(lambda * clip(NIS / (dof c), 1/10, 10)^rate, 1, cap)``; unchanged when
+    off, nothing was read, the gate refused the update, or the NIS is not finite."""
+    from estimator_service.filters.adaptive import RATIO_CLIP, check_adaptation, next_inflation
+    from estimator_service.filters.common import StepInfo
+
+    info = StepInfo(nis=6.0, dof=2)
+    assert next_inflation(2.0, info, 0.5) == pytest.approx(2.0 * 3.0**0.5)  # reference 1 by default
+    assert next_inflation(2.0, info, 0.5, reference=1.5) == pytest.approx(2.0 * 2.0**0.5)
+    assert next_inflation(2.0, info, 1.0, cap=5.0) == 5.0
+    assert next_inflation(2.0, StepInfo(nis=1e6, dof=1), 1.0, cap=100.0) == pytest.approx(2.0 * RATIO_CLIP)
+    assert next_inflation(8.0, StepInfo(nis=1e-6, dof=1), 1.0) == 1.0  # never below 1
+    assert next_inflation(30.0, StepInfo(nis=1e-6, dof=1), 0.5) == pytest.approx(30.0 / RATIO_CLIP**0.5)
+    for same in (
+        StepInfo(nis=6.0, dof=0),
+        StepInfo(nis=6.0, dof=2, gated=True),
+        StepInfo(nis=math.nan, dof=2),
+    ):
+        assert next_inflation(2.0, same, 0.5) == 2.0
+    assert next_inflation(2.0, StepInfo(nis=2.0, dof=1), 0.5) == pytest.approx(2.0 * 2.0**0.5)  # one value
+    assert next_inflation(2.0, info, 0.0) == 2.0 and next_inflation(2.0, info, 1e-9) > 2.0
+    check_adaptation(0.0, 1.0)  # the edges are allowed
+    check_adaptation(1.0, 1.0, 0.5)
+    for rate, cap in (
+        (1.0 + 1e-9, 10.0),
+        (-1e-9, 10.0),
+        (math.nan, 10.0),
+        (0.5, 1.0 - 1e-9),
+        (0.5, math.inf),
+    ):
+        with pytest.raises(ValueError, match=r"adapt_rate|max_inflation"):
+            check_adaptation(rate, cap)
+
+
+def test_a_batch_of_ekf_updates_is_the_joseph_form_computed_once_for_all() -> None:
+    """The batched EKF update equals the single-belief rule row by row without falling back
+    to it (the fallback raises here), and its covariances are exactly symmetric."""
+    from estimator_service.filters.batched import implausible_many, joseph, joseph_update_many
+    from estimator_service.filters.kalman import _kalman_update
+
+    rng = np.random.default_rng(4)
+    b, n, q = 3, 4, 2
+    g = rng.normal(size=(b, n, n))
+    cov, mean = g @ g.transpose(0, 2, 1) + 0.1 * np.eye(n), rng.normal(size=(b, n))
+    h, r_noise, r = rng.normal(size=(b, q, n)), rng.uniform(0.1, 0.5, size=(b, q)), rng.normal(size=(b, q))
+    wrap = Wrapping.none(n, q)
+
+    def no_fallback(i: int):
+        raise AssertionError("the batched update fell back to the single rule")
+
+    out = joseph_update_many(mean, cov, r, h, r_noise, wrap, no_fallback)
+    for i, (post, info) in enumerate(out):
+        s = h[i] @ cov[i] @ h[i].T + np.diag(r_noise[i])
+        want, want_info = _kalman_update(
+            GaussianBelief(mean[i], cov[i]), r[i], s, cov[i] @ h[i].T, wrap, h[i], r_noise[i]
+        )
+        np.testing.assert_allclose(post.mean, want.mean, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(post.cov, want.cov, rtol=1e-9, atol=1e-12)
+        assert info.nis == pytest.approx(want_info.nis, rel=1e-10) and info.dof == q and not info.diverged
+        assert np.array_equal(post.cov, post.cov.T)
+    k = rng.normal(size=(b, n, q))
+    post = joseph(cov, k, h, r_noise)
+    assert np.array_equal(post, post.transpose(0, 2, 1)) and np.array_equal(
+        joseph(cov[0], k[0], h[0], r_noise[0]), post[0]
+    )
+    assert implausible_many(np.array([math.nan, 1e9]), 0).tolist() == [False, False]  # nothing read
+    assert implausible_many(np.array([math.nan, 1e9, 1.0]), 2).tolist() == [True, True, False]
+
+
+def test_the_step_policys_edges_named_and_reported() -> None:
+    """Which filters batch; a step without readings is the prediction; bad batch shapes are
+    refused naming the argument; a particle belief's ESS is reported where it is kept."""
+    from estimator_service.filters import update_many
+    from estimator_service.filters.policy import batchable, step_one
+
+    assert batchable(EKF(PRED, OBS)) and batchable(UKF(PRED, OBS)) and not batchable(PF(PRED, OBS))
+    for f in (EKF(PRED, OBS), UKF(PRED, OBS)):
+        post, info = f.step(PRIOR, np.array([0.3, -0.1]))
+        want = f.predict(PRIOR, np.array([0.3, -0.1]))
+        np.testing.assert_array_equal(post.mean, want.mean)
+        assert info.dof == 0 and math.isnan(info.nis) and not info.diverged
+    two = [PRIOR, PRIOR]
+    for name, args in (
+        ("u", (np.zeros((3, 2)), np.zeros((2, 3)), np.ones((2, 3), bool))),
+        ("z", (np.zeros((2, 2)), np.zeros((1, 3)), np.ones((2, 3), bool))),
+        ("valid", (np.zeros((2, 2)), np.zeros((2, 3)), np.ones(3, bool))),
+    ):
+        with pytest.raises(ValueError, match=rf"^step_many: '{name}' must have one row per belief \(2\)"):
+            step_many(EKF(PRED, OBS), two, *args)
+    pf = PF(PRED, OBS, n_particles=50)
+    cloud = pf.initial(PRIOR, np.random.default_rng(0))
+    weighted = ParticleBelief(cloud.particles, cloud.log_weights - np.log(np.exp(cloud.log_weights).sum()))
+    broken = ParticleBelief(np.full((50, 4), np.nan), cloud.log_weights)
+    out = step_many(
+        pf, [broken], np.zeros((1, 2)), np.zeros((1, 3)), np.ones((1, 3), bool), rng=np.random.default_rng(0)
+    )
+    assert out[0][0] is broken and out[0][1].diverged and out[0][1].ess == pytest.approx(broken.ess)
+    kept = update_many(pf, [weighted], np.zeros((1, 3)), np.zeros((1, 3), bool), rng=np.random.default_rng(0))
+    assert kept[0][0] is weighted and kept[0][1].ess == pytest.approx(weighted.ess)
+    alone = step_one(pf, weighted, np.zeros(2), rng=np.random.default_rng(0))[1]
+    assert alone.ess == pytest.approx(weighted.ess) and alone.dof == 0
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_the_factor_moves_relative_to_the_filters_reference_on_its_states(cls) -> None:
+    f = cls(PRED, OBS, adapt_rate=1.0, adapt_reference=0.5)
+    post, info = f.update(PRIOR, np.array([1.4, -0.9, 0.2]), np.ones(3, bool))
+    assert post.inflation == pytest.approx(min(max(info.nis / (3 * 0.5), 1.0), 10.0), rel=1e-12)
+    assert post.inflation > 1.0
+    with pytest.raises(
+        ValueError, match=r"adapt_states must be distinct state indices in \[0, 4\), got \(1, 1\)"
+    ):
+        cls(PRED, OBS, adapt_states=(1, 1))

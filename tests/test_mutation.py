@@ -43,7 +43,8 @@ def test_mutation_run_and_summary_on_a_tiny_project(tmp_path: Path) -> None:
     subprocess.run(cmd, cwd=tmp_path, capture_output=True, timeout=120, check=True)
     first = json.loads((out / "results.json").read_text())
     edge = next(s["mutant"] for s in first["survivors"] if ">= 10" in s["change"])  # x > 10 -> x >= 10
-    reasons.write_text(json.dumps({edge: "test to add: label(10)"}))
+    rules = [["'XXsmallXX'", "equivalent: a label nobody reads"]]
+    reasons.write_text(json.dumps({"mutants": {edge: "test to add: label(10)"}, "changes": rules}))
     last = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=120, check=True)
     res = json.loads((out / "results.json").read_text())
     assert json.loads(last.stdout.splitlines()[-1])["killed_ratio"] == res["killed_ratio"]
@@ -55,5 +56,7 @@ def test_mutation_run_and_summary_on_a_tiny_project(tmp_path: Path) -> None:
     assert not any("raise" in s["change"] for s in survivors.values())  # message text is not mutated
     assert any("if x <= 0" in s["change"] for s in survivors.values())  # the condition that raises is
     assert survivors[edge]["reason"] == "test to add: label(10)"
-    assert res["survivors_explained"] == 1 and res["survivors_unexplained"] == len(survivors) - 1
+    by_rule = [s for s in survivors.values() if "'XXsmallXX'" in s["change"]]
+    assert len(by_rule) == 1 and by_rule[0]["reason"] == "equivalent: a label nobody reads"
+    assert res["survivors_explained"] == 2 and res["survivors_unexplained"] == len(survivors) - 2
     assert "killed ratio" in (out / "report.md").read_text()

@@ -414,6 +414,8 @@ def test_the_gate_probability_stays_below_one() -> None:
 def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> None:
     p = argparse.ArgumentParser()
     add_limit_options(p)
+    shown = " ".join(p.format_help().split())
+    assert all(" ".join(text.split()) in shown for _, _, _, text in OPTIONS)
     assert limits_from(p.parse_args([])) == Limits()
     assert {name for _, name, _, _ in OPTIONS} == set(EDGES)
     given = {
@@ -464,8 +466,9 @@ def test_the_gate_sits_at_the_chi_square_quantile_and_only_when_there_is_a_readi
     assert not gated(StepInfo(nis=q * (1 - 1e-9), dof=dof), p)
     assert gated(StepInfo(nis=q * (1 + 1e-9), dof=dof), p)
     assert gated(StepInfo(nis=math.nan, dof=dof), p) and gated(StepInfo(nis=math.inf, dof=dof), p)
-    assert not gated(StepInfo(nis=1e9, dof=dof), 0.0)  # the gate is off
-    assert not gated(StepInfo(nis=1e9, dof=0), p)  # no reading, nothing to gate
+    assert not gated(StepInfo(nis=float(q), dof=dof), p)  # at the quantile exactly: applied
+    assert not gated(StepInfo(nis=math.nan, dof=dof), 0.0)  # the gate is off, whatever the NIS
+    assert not gated(StepInfo(nis=math.nan, dof=0), p)  # no reading, nothing to gate
 
 
 def test_the_control_log_gives_the_control_in_force_and_forgets_the_oldest() -> None:
@@ -480,9 +483,31 @@ def test_the_control_log_gives_the_control_in_force_and_forgets_the_oldest() -> 
     assert np.array_equal(log.at(2.5), [2.0, -2.0]) and np.array_equal(log.at(9.0), [3.0, -3.0])
     log.add(4.0, np.array([4.0, -4.0]))  # over the cap: the oldest (t = 1) goes
     assert len(log) == 3 and np.array_equal(log.at(1.5), [0.0, 0.0])
-    log.forget_before(3.5)  # the control in force at 3.5 (t = 3) stays
+    assert [log.at(t)[0] for t in (2.0, 3.0, 4.0)] == [2.0, 3.0, 4.0]  # times and controls together
+    log.forget_before(3.0)  # a control at exactly 3.0 is the one in force: the one at 2.0 goes
     assert len(log) == 2 and np.array_equal(log.at(3.5), [3.0, -3.0])
+    assert np.array_equal(log.at(2.5), [0.0, 0.0])
     log.forget_before(0.0)
     assert len(log) == 2
     log.clear()
     assert len(log) == 0 and np.array_equal(log.at(9.0), [0.0, 0.0])
+
+
+def test_the_services_step_is_the_step_policy_with_its_gate() -> None:
+    """``gated_step`` (what a session runs) equals the one step policy with the service's gate,
+    for a reading the gate refuses and one it applies."""
+    from estimator_service.filters import EKF, GaussianBelief, step_one
+    from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+    from estimator_service.service.limits import gate_for, gated_step
+
+    filt = EKF(
+        LinearGaussianPrediction(np.eye(2), np.eye(2), np.full(2, 0.01)),
+        LinearGaussianObservation(np.eye(2), np.full(2, 0.04)),
+    )
+    belief, u, valid = GaussianBelief(np.zeros(2), np.eye(2)), np.array([0.1, 0.0]), np.ones(2, bool)
+    for z, refused in ((np.array([0.2, -0.1]), False), (np.array([50.0, 0.0]), True)):
+        got, info = gated_step(filt, belief, u, z, valid, np.random.default_rng(0), 1e-6)
+        want, want_info = step_one(filt, belief, u, z, valid, np.random.default_rng(0), gate_for(1e-6))
+        np.testing.assert_array_equal(got.mean, want.mean)
+        np.testing.assert_array_equal(got.cov, want.cov)
+        assert info == want_info and info.gated is refused and (info.dof == 0) is refused

@@ -7,7 +7,7 @@ from estimator_service.filters.common import (
     Wrapping,
     make_pd,
 )
-from estimator_service.filters.kalman import EKF, UKF, sigma_weights
+from estimator_service.filters.kalman import EKF, UKF, sigma_weights, unscented_transform
 from estimator_service.filters.particle import PF, systematic_resample
 from estimator_service.filters.policy import step_many, step_one, update_many
 
@@ -24,5 +24,6 @@ __all__ = [
     "step_many",
     "step_one",
     "systematic_resample",
+    "unscented_transform",
     "update_many",
 ]

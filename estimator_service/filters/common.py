@@ -134,7 +134,7 @@ class Wrapping:
 
     @staticmethod
     def _wrap(d: FloatArray, periods: FloatArray) -> FloatArray:
-        return wrap_angle(d, periods) if np.any(periods) else d
+        return wrap_periodic(d, periods)
 
     def state_diff(self, d: FloatArray) -> FloatArray:
         return self._wrap(d, self.state)
@@ -147,14 +147,8 @@ class Wrapping:
         return self._wrap(x, self.state)
 
     def mean(self, values: FloatArray, weights: FloatArray, periods: FloatArray) -> FloatArray:
-        """Weighted mean of rows ``values (K, n)`` with periodic components.
-
-        Periodic components average the wrapped offsets from the first row, which is exact
-        for a linear spread and allows the UKF's negative centre weight.
-        """
-        ref = values[0]
-        offsets = self._wrap(values - ref, periods)
-        return self._wrap(ref + weights @ offsets, periods)
+        """:func:`weighted_mean` (the filters' one rule for a mean with angles)."""
+        return weighted_mean(values, weights, periods)
 
     def circular_mean(self, values: FloatArray, weights: FloatArray) -> FloatArray:
         """Weighted mean of particles with non-negative weights (atan2 for angles)."""
@@ -163,6 +157,21 @@ class Wrapping:
         ang = 2 * math.pi * values / p
         circ = p / (2 * math.pi) * np.arctan2(weights @ np.sin(ang), weights @ np.cos(ang))
         return np.where(self.state > 0, circ, lin)
+
+
+def wrap_periodic(d: FloatArray, periods: FloatArray) -> FloatArray:
+    """``d`` with its components of period ``> 0`` wrapped (:mod:`estimator_service.angles`)."""
+    return wrap_angle(d, periods) if np.any(periods) else d
+
+
+def weighted_mean(values: FloatArray, weights: FloatArray, periods: FloatArray) -> FloatArray:
+    """Weighted mean ``(n,)`` of rows ``values (K, n)`` with periodic components (``periods``).
+
+    Periodic components average the wrapped offsets from the first row, which is exact
+    for a linear spread and allows the UKF's negative centre weight.
+    """
+    ref = values[0]
+    return wrap_periodic(ref + weights @ wrap_periodic(values - ref, periods), periods)
 
 
 def make_pd(cov: FloatArray, floor: float = 1e-12) -> tuple[FloatArray, FloatArray]:

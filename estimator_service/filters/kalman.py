@@ -22,12 +22,14 @@ from estimator_service.filters.common import (
     finite,
     implausible,
     nis_from_cholesky,
+    weighted_mean,
+    wrap_periodic,
 )
 from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
-__all__ = ["EKF", "UKF", "sigma_weights"]
+__all__ = ["EKF", "UKF", "sigma_weights", "unscented_transform"]
 
 FloatArray = NDArray[np.float64]
 
@@ -220,6 +222,32 @@ def sigma_weights(n: int, alpha: float, beta: float, kappa: float) -> tuple[Floa
     return wm, wc, math.sqrt(n + lam)
 
 
+def unscented_transform(
+    ys: FloatArray, wm: FloatArray, wc: FloatArray, periods: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The unscented transform's moments of sigma points ``ys (N, d)`` after a function.
+
+    Parameters
+    ----------
+    ys: (N, d)
+        The transformed sigma points (:meth:`UKF.sigma_points` through the model).
+    wm, wc: (N,)
+        Mean and covariance weights (:func:`sigma_weights`).
+    periods: (d,)
+        Period of each component (0: not an angle): angles are averaged and differenced
+        wrapped (:func:`~estimator_service.filters.common.weighted_mean`).
+
+    Returns
+    -------
+    mean: (d,), deviations: (N, d), covariance: (d, d)
+        ``sum wm_i y_i``, ``y_i - mean`` and ``sum wc_i dev_i dev_i^T`` (Julier and Uhlmann;
+        Wan and van der Merwe's scaled form).
+    """
+    mean = weighted_mean(ys, wm, periods)
+    dev = wrap_periodic(ys - mean, periods)
+    return mean, dev, (dev * wc[:, None]).T @ dev
+
+
 @dataclass(frozen=True)
 class UKF(_GaussianFilter):
     """GP-UKF: unscented transform through the models' means (paper Table 3).
@@ -252,6 +280,9 @@ class UKF(_GaussianFilter):
     def __post_init__(self) -> None:
         if self.noise not in ("mean", "sigma"):
             raise ValueError(f"noise must be 'mean' or 'sigma', got {self.noise!r}")
+        n = self.prediction.state_dim
+        if not (self.alpha > 0 and n + self.kappa > 0):
+            raise ValueError(f"UKF needs alpha > 0 and n + kappa > 0 (n = {n}), got {self.alpha}, {self.kappa}")
         self._check_adaptation()
         _ = self._w  # the weights are checked (and held) with the filter
 
@@ -304,9 +335,8 @@ class UKF(_GaussianFilter):
             if bad[i]:  # no sigma points: a non-finite prediction, which the step flags
                 results.append(GaussianBelief(np.full(n, np.nan), np.full((n, n), np.nan), b.inflation))
                 continue
-            mean = self._wrap.mean(xk[i], wm, self._wrap.state)
-            dev = self._wrap.state_diff(xk[i] - mean)
-            cov = (dev * wc[:, None]).T @ dev + np.diag(q[i] * factors[i])
+            mean, _, cov = unscented_transform(xk[i], wm, wc, self._wrap.state)
+            cov = cov + np.diag(q[i] * factors[i])
             results.append(GaussianBelief(mean, 0.5 * (cov + cov.T), b.inflation))
         return results
 
@@ -344,10 +374,9 @@ class UKF(_GaussianFilter):
         """Steps 9-15 of Table 3 for one belief: sigma points ``x``, their predicted valid
         observations ``zs`` and the observation noise ``r_noise`` of the valid entries ``idx``."""
         wm, wc, _ = self._w
-        zhat = self._wrap.mean(zs, wm, self._wrap.obs[idx])
-        dz = self._wrap.obs_diff(zs - zhat, idx)
+        zhat, dz, s = unscented_transform(zs, wm, wc, self._wrap.obs[idx])
+        s = s + np.diag(r_noise)
         dx = self._wrap.state_diff(x - prior.mean)
-        s = (dz * wc[:, None]).T @ dz + np.diag(r_noise)
         pxz = (dx * wc[:, None]).T @ dz
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zhat, idx)
         post, info = _kalman_update(prior, r, s, pxz, self._wrap)

@@ -5,8 +5,10 @@ Reads mutmut's per-file results under ``mutants/`` and writes, beside this scrip
 - ``results.json``: ``killed``, ``survived``, ``no_tests``, ``timeout``, ``total`` and
   ``killed_ratio`` (killed and timed-out mutants over all mutants run: a mutant no test
   reaches counts as surviving), the same per module, and every surviving mutant with its
-  one-line change and its reason from ``reasons.json`` (``--reasons``) (``"equivalent: ..."`` or
-  ``"test to add: ..."``); a survivor without a reason is listed as ``unexplained``.
+  one-line change and its reason (``"equivalent: ..."`` or ``"test to add: ..."``) from
+  ``reasons.json`` (``--reasons``): ``{"mutants": {name: reason}, "changes": [[regex,
+  reason], ...]}``, a mutant's own entry first, else the first regular expression that
+  matches its change; a survivor without a reason is listed as ``unexplained``.
 - ``report.md``: the same for a reader.
 
 Run from the repository root after ``mutmut run``: ``python docs/results/mutation/summarise.py``.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections import Counter
 from pathlib import Path
@@ -55,7 +58,15 @@ def _ratio(counts: Counter) -> float:
     return sum(counts[s] for s in KILLED) / run if run else float("nan")
 
 
-def summarise(reasons: dict[str, str]) -> dict:
+def _reason(reasons: dict, name: str, change: str) -> str:
+    """``name``'s reason (:func:`main`'s ``--reasons`` format), or ``"unexplained"``."""
+    own = reasons.get("mutants", {}) if "mutants" in reasons or "changes" in reasons else reasons
+    if name in own:
+        return own[name]
+    return next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), "unexplained")
+
+
+def summarise(reasons: dict) -> dict:
     """The results document (see the module docstring)."""
     status, _ = _status_and_diffs(set())
     surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
@@ -67,7 +78,7 @@ def summarise(reasons: dict[str, str]) -> dict:
         if per:
             modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts)}
     survivors = [
-        {"mutant": k, "status": s, "change": diffs.get(k, ""), "reason": reasons.get(k, "unexplained")}
+        {"mutant": k, "status": s, "change": (c := diffs.get(k, "")), "reason": _reason(reasons, k, c)}
         for per in status.values() for k, s in sorted(per.items()) if k in surviving
     ]  # fmt: skip
     explained = sum(r["reason"] != "unexplained" for r in survivors)
