@@ -26,9 +26,11 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py
 
-# Mutation testing (outside `make test`; about an hour on 2 cores): the configuration is
-# [tool.mutmut] in pyproject.toml; the score goes to docs/results/mutation/.
+# Mutation testing (outside `make test`; hours on 2 cores): the configuration is
+# [tool.mutmut] in pyproject.toml; the score goes to docs/results/mutation/. A fresh run each
+# time: mutmut keeps stale copies of the modules it does not mutate.
 mutate: $(STAMP)
+	rm -rf mutants
 	$(VENV)/bin/mutmut run --max-children $$(nproc)
 	$(VENV)/bin/python docs/results/mutation/summarise.py
 

@@ -597,9 +597,9 @@ class NoisyWhereFar:
     state_dim: int = 2
     control_dim: int = 1
 
-    def predict(self, x, u, *, jac=False, var=True) -> ModelOutput:
+    def predict(self, x, u, *, jac=False, var=True) -> ModelOutput:  # no variance unless asked, as a GP
         j = np.zeros((len(x), 2, 2)) if jac else None
-        return ModelOutput(np.zeros_like(x), 0.01 + x**2, j)
+        return ModelOutput(np.zeros_like(x), 0.01 + x**2 if var else np.zeros_like(x), j)
 
 
 @dataclass(frozen=True)
@@ -611,7 +611,8 @@ class FirstWithNoise:
 
     def observe(self, x, *, jac=False, var=True) -> ModelOutput:
         j = np.concatenate([1 + 0.6 * x[:, :1], np.zeros((len(x), 1))], axis=1)[:, None, :] if jac else None
-        return ModelOutput(x[:, :1] + 0.3 * x[:, :1] ** 2, 0.01 + x[:, :1] ** 2, j)
+        v = 0.01 + x[:, :1] ** 2 if var else np.zeros((len(x), 1))
+        return ModelOutput(x[:, :1] + 0.3 * x[:, :1] ** 2, v, j)
 
 
 def test_the_ukf_takes_noise_at_the_mean_or_averaged_over_the_sigma_points_as_asked() -> None:
@@ -735,6 +736,10 @@ def test_the_adaptive_factor_follows_its_documented_rule() -> None:
         assert next_inflation(2.0, same, 0.5) == 2.0
     assert next_inflation(2.0, StepInfo(nis=2.0, dof=1), 0.5) == pytest.approx(2.0 * 2.0**0.5)  # one value
     assert next_inflation(2.0, info, 0.0) == 2.0 and next_inflation(2.0, info, 1e-9) > 2.0
+    from estimator_service.filters.adaptive import adapted
+
+    moved = adapted(PRIOR, GaussianBelief(PRIOR.mean, PRIOR.cov, 2.0), info, 0.5)  # reference 1, cap 30
+    assert moved.inflation == pytest.approx(2.0 * 3.0**0.5)
     check_adaptation(0.0, 1.0)  # the edges are allowed
     check_adaptation(1.0, 1.0, 0.5)
     for rate, cap in (
@@ -827,3 +832,97 @@ def test_the_factor_moves_relative_to_the_filters_reference_on_its_states(cls) -
         ValueError, match=r"adapt_states must be distinct state indices in \[0, 4\), got \(1, 1\)"
     ):
         cls(PRED, OBS, adapt_states=(1, 1))
+
+
+def test_the_covariance_helpers_at_their_edges() -> None:
+    """``make_pd``: a positive-definite matrix is returned as given with its exact factor; a
+    singular one has its eigenvalues raised to ``floor * trace / n``. Index rules, the
+    chi-square flag without readings, one wrapping rule per component, a belief's shapes."""
+    from estimator_service.filters.common import (
+        distinct_indices,
+        implausible,
+        make_pd,
+        weighted_mean,
+        wrap_periodic,
+    )
+
+    good = np.array([[2.0, 0.3], [0.3, 1.0]])
+    c, l = make_pd(good)
+    assert np.array_equal(c, good) and np.array_equal(l, np.linalg.cholesky(good))
+    c, l = make_pd(np.diag([400.0, 0.0, 0.0, 0.0]))  # floor 1e-12 x trace 400 / 4
+    np.testing.assert_allclose(np.diag(c), [400.0, 1e-10, 1e-10, 1e-10], rtol=1e-6)
+    assert np.allclose(c, np.diag(np.diag(c)), rtol=0, atol=1e-15)
+    assert distinct_indices((0, 2), 3) == (0, 2) and distinct_indices((3,), 3) is None
+    assert distinct_indices((2, 2), 3) is None and distinct_indices((), 3) is None
+    assert implausible(math.nan, 0) is False and implausible(math.nan, 2) is True
+    np.testing.assert_allclose(
+        wrap_periodic(np.array([5.0, 4.0]), np.array([0.0, 2 * math.pi])), [5.0, 4.0 - 2 * math.pi]
+    )
+    values = np.array([[math.pi - 0.01], [-math.pi + 0.03]])  # 0.04 apart across the cut
+    assert weighted_mean(values, np.array([0.5, 0.5]), np.array([2 * math.pi]))[0] == pytest.approx(
+        -math.pi + 0.01
+    )
+    b = GaussianBelief(np.array([1, 2]), np.eye(2, dtype=int))
+    assert b.mean.dtype == np.float64 and b.cov.dtype == np.float64
+    listed = GaussianBelief([1.0, 2.0], [[1.0, 0.0], [0.0, 1.0]])
+    assert isinstance(listed.mean, np.ndarray) and isinstance(listed.cov, np.ndarray)
+    with pytest.raises(
+        ValueError, match=r"belief mean \(n,\) and cov \(n, n\) expected, got \(2,\), \(3, 3\)"
+    ):
+        GaussianBelief(np.zeros(2), np.eye(3))
+    assert "\n" not in repr(GaussianBelief(np.arange(12.0) * 1000.5, np.eye(12)))
+
+
+def test_a_periodic_component_of_any_period_is_averaged_on_its_circle() -> None:
+    wrap = Wrapping(np.array([0.5]), np.zeros(1))
+    x = np.array([[0.24], [-0.24]])  # 0.02 apart across the cut at +-0.25
+    assert abs(wrap.circular_mean(x, np.array([0.5, 0.5]))[0]) == pytest.approx(0.25, abs=1e-9)
+
+
+@pytest.mark.parametrize("cls", [EKF, UKF])
+def test_an_update_whose_innovation_covariance_is_not_positive_definite_is_refused(cls) -> None:
+    obs = LinearGaussianObservation(H[:1], np.array([-10.0]))  # a negative noise variance: S < 0
+    post, info = cls(PRED, obs).update(PRIOR, np.array([0.3]))
+    assert post is PRIOR and info.diverged and info.dof == 1 and math.isnan(info.nis)
+
+
+def test_a_batch_with_one_unusable_row_falls_back_to_the_single_rule_for_every_row() -> None:
+    obs = LinearGaussianObservation(H, R)
+    ekf = EKF(PRED, obs)
+    broken = GaussianBelief(PRIOR.mean, -np.eye(4))  # S not positive definite: the batch fails
+    z, valid = np.array([[0.4, -0.1, 0.3]] * 3), np.ones((3, 3), bool)
+    out = ekf.update_many([PRIOR, broken, PRIOR], z, valid)
+    alone = ekf.update(PRIOR, z[0])
+    for post, info in (out[0], out[2]):
+        np.testing.assert_allclose(post.mean, alone[0].mean, rtol=1e-12)
+        np.testing.assert_allclose(post.cov, alone[0].cov, rtol=1e-10, atol=1e-14)
+        assert info.nis == pytest.approx(alone[1].nis, rel=1e-12)
+    assert out[1][0] is broken and out[1][1].diverged
+
+
+def test_angles_are_averaged_across_the_cut_by_the_ukf() -> None:
+    """A heading near +pi with a spread that crosses the cut: the predicted mean and the
+    innovation of a reading just past -pi stay near the cut (not near 0)."""
+    wrap = Wrapping(np.array([2 * math.pi]), np.array([2 * math.pi]))
+    pred = LinearGaussianPrediction(np.eye(1), np.zeros((1, 1)), np.array([1e-4]))
+    obs = LinearGaussianObservation(np.eye(1), np.array([1e-3]))
+    ukf = UKF(pred, obs, wrapping=wrap)
+    prior = GaussianBelief(np.array([math.pi - 0.05]), np.array([[0.01]]))
+    p = ukf.predict(prior, np.zeros(1))
+    assert p.mean[0] == pytest.approx(math.pi - 0.05, abs=1e-9) and p.cov[0, 0] == pytest.approx(0.0101)
+    post, info = ukf.update(p, np.array([-math.pi + 0.02]))
+    assert abs(post.mean[0]) > 3.1 and info.nis < 1.0  # 0.07 rad away, not 2 pi - 0.07
+
+
+def test_a_prediction_with_a_finite_mean_but_no_covariance_keeps_the_belief() -> None:
+    from estimator_service.filters.policy import batchable
+
+    class HalfBatched:
+        def predict_many(self, beliefs, u):  # an update_many is missing: not a batching filter
+            raise AssertionError
+
+    assert not batchable(HalfBatched())
+    ekf = EKF(PRED, OBS)
+    nan_cov = GaussianBelief(PRIOR.mean, np.full((4, 4), np.nan))
+    post, info = ekf.step(nan_cov, np.zeros(2), np.array([0.4, -0.1, 0.3]), np.ones(3, bool))
+    assert post is nan_cov and info.diverged

@@ -194,7 +194,9 @@ def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
     stacked = StackedObservationModel((shared, linear), placed)
     x = rng.normal(size=(3, 2))
     floor = np.full(13, 0.05)
-    models = [shared, linear, stacked, NoiseScaledObservation(stacked, np.linspace(0.5, 2.0, 13), floor),
+    in_order = StackedObservationModel((linear, shared))  # no columns: one part after another
+    models = [shared, linear, stacked, in_order,
+              NoiseScaledObservation(stacked, np.linspace(0.5, 2.0, 13), floor),
               NoiseScaledObservation(stacked, rng.uniform(0.5, 2.0, size=(3, 13)), floor)]  # fmt: skip
     for model in models:
         whole = model.observe(x, jac=True)
@@ -206,3 +208,9 @@ def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
                 part.var, np.broadcast_to(whole.var, whole.mean.shape)[:, cols], rtol=1e-12
             )
             np.testing.assert_allclose(part.jac, whole.jac[:, cols], rtol=1e-10, atol=1e-12)
+            plain = observe_columns(model, x, cols)  # by default no Jacobian, with variances
+            assert plain.jac is None and np.array_equal(plain.mean, part.mean)
+            np.testing.assert_allclose(plain.var, part.var, rtol=1e-12)
+        assert model.observe(x).jac is None and np.array_equal(model.observe(x).mean, whole.mean)
+    parts = np.concatenate([linear.observe(x).mean, shared.observe(x).mean], axis=1)
+    np.testing.assert_array_equal(in_order.observe(x).mean, parts)

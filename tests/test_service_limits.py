@@ -496,7 +496,7 @@ def test_the_control_log_gives_the_control_in_force_and_forgets_the_oldest() -> 
 def test_the_services_step_is_the_step_policy_with_its_gate() -> None:
     """``gated_step`` (what a session runs) equals the one step policy with the service's gate,
     for a reading the gate refuses and one it applies."""
-    from estimator_service.filters import EKF, GaussianBelief, step_one
+    from estimator_service.filters import EKF, PF, GaussianBelief, step_one
     from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
     from estimator_service.service.limits import gate_for, gated_step
 
@@ -504,10 +504,16 @@ def test_the_services_step_is_the_step_policy_with_its_gate() -> None:
         LinearGaussianPrediction(np.eye(2), np.eye(2), np.full(2, 0.01)),
         LinearGaussianObservation(np.eye(2), np.full(2, 0.04)),
     )
-    belief, u, valid = GaussianBelief(np.zeros(2), np.eye(2)), np.array([0.1, 0.0]), np.ones(2, bool)
-    for z, refused in ((np.array([0.2, -0.1]), False), (np.array([50.0, 0.0]), True)):
+    belief, u, valid = GaussianBelief(np.zeros(2), np.eye(2)), np.array([0.1, 0.0]), np.array([True, False])
+    for z, refused in ((np.array([0.2, 99.0]), False), (np.array([50.0, 0.0]), True)):
         got, info = gated_step(filt, belief, u, z, valid, np.random.default_rng(0), 1e-6)
         want, want_info = step_one(filt, belief, u, z, valid, np.random.default_rng(0), gate_for(1e-6))
         np.testing.assert_array_equal(got.mean, want.mean)
         np.testing.assert_array_equal(got.cov, want.cov)
-        assert info == want_info and info.gated is refused and (info.dof == 0) is refused
+        assert info == want_info and info.gated is refused and info.dof == (0 if refused else 1)
+    pf = PF(filt.prediction, filt.observation, n_particles=200)
+    cloud = pf.initial(belief, np.random.default_rng(1))
+    got, info = gated_step(pf, cloud, u, np.array([0.2, 99.0]), valid, np.random.default_rng(2), 1e-6)
+    want, _ = step_one(pf, cloud, u, np.array([0.2, 99.0]), valid, np.random.default_rng(2), gate_for(1e-6))
+    np.testing.assert_array_equal(got.particles, want.particles)
+    assert info.dof == 1 and not info.gated

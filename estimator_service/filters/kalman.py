@@ -282,7 +282,9 @@ class UKF(_GaussianFilter):
             raise ValueError(f"noise must be 'mean' or 'sigma', got {self.noise!r}")
         n = self.prediction.state_dim
         if not (self.alpha > 0 and n + self.kappa > 0):
-            raise ValueError(f"UKF needs alpha > 0 and n + kappa > 0 (n = {n}), got {self.alpha}, {self.kappa}")
+            raise ValueError(
+                f"UKF needs alpha > 0 and n + kappa > 0 (n = {n}), got {self.alpha}, {self.kappa}"
+            )
         self._check_adaptation()
         _ = self._w  # the weights are checked (and held) with the filter
 
