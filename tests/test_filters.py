@@ -715,7 +715,7 @@ def test_a_gaussian_belief_prints_its_mean_and_standard_deviations() -> None:
     assert "..." in long and "..." not in repr(GaussianBelief(np.arange(24.0), np.eye(24)))
 
 
-def test_the_adaptive_factor_follows_its_documented_rule() -> None:
+def test_the_adaptive_factor_and_its_defaults_follow_the_documented_rule() -> None:
     """``lambda' = clip(lambda * clip(NIS / (dof c), 1/10, 10)^rate, 1, cap)``; unchanged when
     off, nothing was read, the gate refused the update, or the NIS is not finite."""
     from estimator_service.filters.adaptive import RATIO_CLIP, check_adaptation, next_inflation
@@ -903,15 +903,35 @@ def test_a_batch_with_one_unusable_row_falls_back_to_the_single_rule_for_every_r
 def test_angles_are_averaged_across_the_cut_by_the_ukf() -> None:
     """A heading near +pi with a spread that crosses the cut: the predicted mean and the
     innovation of a reading just past -pi stay near the cut (not near 0)."""
+    from estimator_service.angles import wrap_angle
+
+    @dataclass(frozen=True)
+    class Heading:  # a model that reports its angles wrapped, as the GP models do
+        state_dim: int = 1
+        control_dim: int = 1
+        obs_dim: int = 1
+
+        def predict(self, x, u, *, jac=False, var=True) -> ModelOutput:
+            change = wrap_angle(x + 0.0, 2 * math.pi) - x
+            return ModelOutput(change, np.full_like(x, 1e-4), np.zeros((len(x), 1, 1)) if jac else None)
+
+        def observe(self, x, *, jac=False, var=True) -> ModelOutput:
+            return ModelOutput(
+                wrap_angle(x, 2 * math.pi), np.full_like(x, 1e-3), np.ones((len(x), 1, 1)) if jac else None
+            )
+
     wrap = Wrapping(np.array([2 * math.pi]), np.array([2 * math.pi]))
-    pred = LinearGaussianPrediction(np.eye(1), np.zeros((1, 1)), np.array([1e-4]))
-    obs = LinearGaussianObservation(np.eye(1), np.array([1e-3]))
-    ukf = UKF(pred, obs, wrapping=wrap)
+    ukf = UKF(Heading(), Heading(), wrapping=wrap)
     prior = GaussianBelief(np.array([math.pi - 0.05]), np.array([[0.01]]))
     p = ukf.predict(prior, np.zeros(1))
     assert p.mean[0] == pytest.approx(math.pi - 0.05, abs=1e-9) and p.cov[0, 0] == pytest.approx(0.0101)
     post, info = ukf.update(p, np.array([-math.pi + 0.02]))
     assert abs(post.mean[0]) > 3.1 and info.nis < 1.0  # 0.07 rad away, not 2 pi - 0.07
+    away = ukf.update(GaussianBelief(p.mean - math.pi, p.cov), np.array([0.02]))  # the same, far from the cut
+    assert wrap_angle(post.mean[0] - math.pi - away[0].mean[0], 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+    assert info.nis == pytest.approx(away[1].nis, rel=1e-9) and post.cov[0, 0] == pytest.approx(
+        away[0].cov[0, 0]
+    )
 
 
 def test_a_prediction_with_a_finite_mean_but_no_covariance_keeps_the_belief() -> None:

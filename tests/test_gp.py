@@ -476,3 +476,36 @@ def test_conditioned_keeps_the_hyperparameters_and_follows_the_new_data(models, 
         gp.conditioned(x[:, :1], y)
     with pytest.raises(ValueError, match="Y have 1 columns"):
         gp.conditioned(x, y[:, :1])
+
+
+def test_central_differences_scale_their_step_with_the_input() -> None:
+    """``numeric_jacobian``: step ``1e-6 max(1, |x|)``, so a cubic is differentiated to its
+    rounding at ``|x|`` of 1e-3 and of 1e6 alike (one batched call of ``f``)."""
+    from estimator_service.gp.enhanced import numeric_jacobian, value_and_jacobian
+
+    calls = []
+
+    def f(x):
+        calls.append(len(x))
+        return np.stack([x[:, 0] ** 3, x[:, 0] * x[:, 1]], axis=1)
+
+    x = np.array([[1e-3, 2.0], [1e6, -3.0]])
+    jac = numeric_jacobian(f, x)
+    want = np.array([[[3e-6, 0.0], [2.0, 1e-3]], [[3e12, 0.0], [-3.0, 1e6]]])
+    np.testing.assert_allclose(jac, want, rtol=1e-6, atol=1e-9)
+    assert calls == [2 * (2 * 2 + 1)]
+    at, jac2 = value_and_jacobian(f, x)
+    np.testing.assert_array_equal(at, f(x))
+    np.testing.assert_array_equal(jac2, jac)
+
+
+def test_a_gp_conditions_on_a_single_point() -> None:
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(40, 2))
+    gp = fit_exact(x, np.sin(x[:, :1]) + 0.01 * rng.normal(size=(40, 1)), restarts=0, max_iter=20, rng=rng)
+    one = gp.conditioned(np.array([[0.3, -0.2]]), np.array([[0.5]]))
+    p = one.predict(np.array([[0.3, -0.2]]))
+    assert (
+        p.mean[0, 0] == pytest.approx(0.5, abs=0.1)
+        and p.var[0, 0] < gp.predict(np.array([[9.0, 9.0]])).var[0, 0]
+    )

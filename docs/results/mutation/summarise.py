@@ -82,8 +82,11 @@ def summarise(reasons: dict) -> dict:
         for per in status.values() for k, s in sorted(per.items()) if k in surviving
     ]  # fmt: skip
     explained = sum(r["reason"] != "unexplained" for r in survivors)
+    run = sum(n for st, n in total.items() if st not in NOT_RUN)
     return {
         **_named(total), "total": sum(total.values()), "killed_ratio": round(_ratio(total), 4),
+        "run_fraction": round(run / max(1, sum(total.values())), 4),
+        "modules_complete": [m for m, v in modules.items() if v["not_run"] == 0],
         "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
         "modules": modules, "survivors": survivors,
     }  # fmt: skip
@@ -109,15 +112,17 @@ def report(res: dict) -> str:
         "tests marked `slow` are left out; `raise` statements keep their message text). A mutant",
         "is *killed* when a test fails or it times out; one that no test reaches counts as surviving.",
         "",
-        f"**killed ratio {res['killed_ratio']:.3f}** ({res['killed']} killed, {res['timeout']} timed out,",
-        f"{res['survived']} survived, {res['no_tests']} reached by no test, of {res['total']});",
+        f"**killed ratio {res['killed_ratio']:.3f}** over the mutants run ({res['killed']} killed,",
+        f"{res['timeout']} timed out, {res['survived']} survived, {res['no_tests']} reached by no test);",
+        f"{res['not_run']} of the {res['total']} mutants not run (run fraction {res['run_fraction']:.3f});",
         f"survivors explained: {res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
         "",
-        "| module | mutants | killed ratio | survived | no test |",
-        "|---|---|---|---|---|",
+        "| module | mutants | not run | killed ratio (of those run) | survived | no test |",
+        "|---|---|---|---|---|---|",
     ]
     rows = [
-        f"| `{m}` | {v['total']} | {v['killed_ratio']:.3f} | {v['survived']} | {v['no_tests']} |"
+        f"| `{m}` | {v['total']} | {v['not_run']} | {v['killed_ratio']:.3f} | {v['survived']} | "
+        f"{v['no_tests']} |"
         for m, v in res["modules"].items()
     ]
     tail = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
@@ -142,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))
-    keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "total", "survivors_unexplained")
+    keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "not_run", "total", "run_fraction",
+            "survivors_unexplained")  # fmt: skip
     print(json.dumps({k: res[k] for k in keys}))
     return 0
 
