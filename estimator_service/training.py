@@ -101,14 +101,7 @@ class TrainSettings:
         (``calibration_folds`` extra fits); without (the default), it keeps the final
         models' and is only conditioned on its data (no optimisation: a few per cent of a
         fit). Chosen by a rule fixed before the run, on simulator flights no report uses
-        (200-point gp and sparse, 8-minute lab flight seed 21, 4 folds of 120 s, new
-        4-minute flights seeds 24-27 in 30 s runs, EKF and UKF as the factory builds them):
-        held-out mean log-likelihood of the truth 26.13 / 25.58 / 25.40 / 24.84 (EKF-gp,
-        UKF-gp, EKF-sparse, UKF-sparse) conditioning only vs 26.18 / 24.93 / 25.30 / 23.32
-        refitting, position RMS 2.9 % lower, NEES/12 1.21-1.34 vs 0.79-0.94, within 3 sigma
-        on every dimension 0.84-0.87 vs 0.92; training 37 s vs 64 s. Under the earlier
-        coverage rule refitting had looked the more honest (within 3 sigma 0.90-0.955 vs
-        0.85-0.94, before the coverage factor).
+        (measured: docs/measurements.md#calibration-folds).
     hyper_points, polish_iter
         Exact and heteroscedastic GPs learn hyperparameters on a random subset of
         ``hyper_points`` points, then polish them for ``polish_iter`` iterations on all

@@ -80,18 +80,21 @@ def test_sparse_nll_gradient_including_pseudo_inputs(toy) -> None:
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("queries", [3, 41])  # all outputs at once, and output by output (> 32)
 @pytest.mark.parametrize("kind", ["exact", "sparse", "hetero", "enhanced"])
-def test_mean_jacobian_matches_finite_differences(models, kind: str) -> None:
+def test_mean_jacobian_matches_finite_differences(models, kind: str, queries: int) -> None:
     gp = models[kind]
     x0 = np.array([[0.3, -1.1], [2.0, 0.5], [-2.5, 2.5]])
+    if queries > 3:
+        x0 = np.concatenate([x0, np.random.default_rng(5).uniform(-2.5, 2.5, (queries - 3, 2))])
     jac = gp.predict(x0, return_jac=True).jac
-    assert jac.shape == (3, 2, 2)
+    assert jac.shape == (queries, 2, 2)
     h = 1e-5
     fd = np.stack(
         [(gp.predict(x0 + h * e).mean - gp.predict(x0 - h * e).mean) / (2 * h) for e in np.eye(2)],
         axis=-1,
     )
-    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6)
 
 
 # -- GP limits ----------------------------------------------------------------------------
@@ -509,3 +512,26 @@ def test_a_gp_conditions_on_a_single_point() -> None:
         p.mean[0, 0] == pytest.approx(0.5, abs=0.1)
         and p.var[0, 0] < gp.predict(np.array([[9.0, 9.0]])).var[0, 0]
     )
+
+
+def test_heteroscedastic_noise_is_reported_in_the_targets_units() -> None:
+    """Targets scaled by 10 (a standardised std far from 1): the learned noise standard
+    deviation in original units is the generating one (0.05 + x/6, times 10) within 40 %."""
+    rng = np.random.default_rng(9)
+    x = rng.uniform(-3, 3, (300, 1))
+    std = 0.05 + 0.5 * np.clip(x[:, 0], 0, None) / 3
+    y = 10 * (np.sin(x[:, 0]) + std * rng.normal(size=300))
+    het = fit_hetero(x, y, iterations=2, restarts=1, max_iter=80, rng=rng)
+    noise = np.sqrt(het.noise_var(np.array([[1.5], [2.5]])))[:, 0]
+    np.testing.assert_allclose(noise, 10 * (0.05 + np.array([1.5, 2.5]) / 6), rtol=0.4)
+
+
+def test_an_enhanced_gps_variance_includes_the_noise_by_default() -> None:
+    rng = np.random.default_rng(10)
+    x = rng.uniform(-2, 2, (60, 1))
+    y = np.sin(x) + 0.1 * rng.normal(size=(60, 1))
+    egp = fit_enhanced(x, y, lambda q: 0.9 * q, fit_exact, restarts=0, max_iter=30, rng=rng)
+    q = np.array([[0.3], [1.1]])
+    with_noise, latent = egp.predict(q), egp.predict(q, include_noise=False)
+    np.testing.assert_array_equal(with_noise.var, egp.residual.predict(q).var)
+    assert np.all(with_noise.var > latent.var + 1e-3)
