@@ -132,23 +132,15 @@ class Wrapping:
     def none(cls, n: int, m: int) -> Wrapping:
         return cls(np.zeros(n), np.zeros(m))
 
-    @staticmethod
-    def _wrap(d: FloatArray, periods: FloatArray) -> FloatArray:
-        return wrap_periodic(d, periods)
-
     def state_diff(self, d: FloatArray) -> FloatArray:
-        return self._wrap(d, self.state)
+        return wrap_periodic(d, self.state)
 
     def obs_diff(self, d: FloatArray, idx: NDArray[np.intp] | slice = slice(None)) -> FloatArray:
-        return self._wrap(d, self.obs[idx])
+        return wrap_periodic(d, self.obs[idx])
 
     def state_value(self, x: FloatArray) -> FloatArray:
         """Angles of a state wrapped into ``[-p/2, p/2)`` (:mod:`estimator_service.angles`)."""
-        return self._wrap(x, self.state)
-
-    def mean(self, values: FloatArray, weights: FloatArray, periods: FloatArray) -> FloatArray:
-        """:func:`weighted_mean` (the filters' one rule for a mean with angles)."""
-        return weighted_mean(values, weights, periods)
+        return wrap_periodic(x, self.state)
 
     def circular_mean(self, values: FloatArray, weights: FloatArray) -> FloatArray:
         """Weighted mean of particles with non-negative weights (atan2 for angles)."""

@@ -286,7 +286,7 @@ class UKF(_GaussianFilter):
                 f"UKF needs alpha > 0 and n + kappa > 0 (n = {n}), got {self.alpha}, {self.kappa}"
             )
         self._check_adaptation()
-        _ = self._w  # the weights are checked (and held) with the filter
+        _ = self._w  # the weights are computed once, with the filter
 
     @functools.cached_property
     def _w(self) -> tuple[FloatArray, FloatArray, float]:

@@ -20,6 +20,7 @@ from estimator_service.filters.common import (
     make_pd,
     nis_from_cholesky,
     normalise_log_weights,
+    weighted_mean,
 )
 from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
@@ -155,7 +156,8 @@ class PF:
         (variances ``var (M, q)``), their deviations from their mean ``(M, q)`` and the
         Cholesky factor of their covariance ``S (q, q)`` (NaN and None when ``S`` is not
         positive definite)."""
-        zhat = self._wrap.mean(zs, w, self._wrap.obs[idx]) if np.any(self._wrap.obs[idx]) else w @ zs
+        periods = self._wrap.obs[idx]
+        zhat = weighted_mean(zs, w, periods) if np.any(periods) else w @ zs
         dz = self._wrap.obs_diff(zs - zhat, idx)
         s = (dz * w[:, None]).T @ dz + np.diag(w @ var)
         try:

@@ -137,12 +137,12 @@ class StackedObservationModel:
             if sizes != [p.obs_dim for p in self.parts] or not np.array_equal(np.sort(cols), whole):
                 raise ValueError("stacked observation models' columns must cover the observation once")
 
-    @property
+    @functools.cached_property
     def state_dim(self) -> int:
         return self.parts[0].state_dim
 
-    @property
-    def obs_dim(self) -> int:
+    @functools.cached_property
+    def obs_dim(self) -> int:  # read by the filters every step: summed once
         return sum(p.obs_dim for p in self.parts)
 
     @functools.cached_property
