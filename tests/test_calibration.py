@@ -417,3 +417,39 @@ def test_settings_tracked_side_by_side_equal_each_tracked_alone() -> None:
     scaled = NoiseScaledPrediction(pred, np.ones((3, n)))
     with pytest.raises(RowMismatch, match="3 rows"):
         scaled.predict(np.zeros((2, n)), np.zeros((2, 3)))
+
+
+def test_calibration_details_with_numpy_values_round_trip(tmp_path: Path) -> None:
+    """What training measured (numpy arrays and scalars) is written as plain JSON numbers and
+    read back unchanged."""
+    from estimator_service.models.calibration import read_details, write_noise_scales
+
+    details = {"scales": np.array([1.5, 2.0]), "share": np.float32(0.25), "folds": np.int64(3)}
+    write_noise_scales(tmp_path, {"gp": 2.0}, sizes=details)
+    back = read_details(tmp_path)["sizes"]
+    assert back == {"scales": [1.5, 2.0], "share": 0.25, "folds": 3}
+
+
+def test_the_process_ceiling_round_trips_and_refuses_bad_values(tmp_path: Path) -> None:
+    """``CEILING_FACTOR`` times each state's training variance, however small; none for a state
+    that never varied; read back as written; a zero, negative or non-number ceiling is refused
+    by name."""
+    from estimator_service.models.calibration import (
+        CALIBRATION_FILE,
+        CEILING_FACTOR,
+        PROCESS_CEILING,
+        read_process_ceiling,
+        write_process_ceiling,
+    )
+
+    rng = np.random.default_rng(3)
+    states = np.c_[rng.normal(0, 1e-3, 50), np.full(50, 2.0), rng.normal(0, 3.0, 50)]
+    write_process_ceiling(tmp_path, states)
+    want = CEILING_FACTOR * np.var(states, axis=0)
+    want[1] = np.inf
+    np.testing.assert_allclose(read_process_ceiling(tmp_path, 3), want, rtol=1e-12)
+    path = tmp_path / CALIBRATION_FILE
+    for bad in ([1.0, 0.0, 2.0], [1.0, -3.0, 2.0], ["a", 1.0, 2.0], [1.0, 2.0]):
+        path.write_text(json.dumps({PROCESS_CEILING: bad}))
+        with pytest.raises(ValueError, match=PROCESS_CEILING):
+            read_process_ceiling(tmp_path, 3)

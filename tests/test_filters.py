@@ -450,10 +450,10 @@ def test_batched_kalman_step_equals_one_blimp_at_a_time(cls, noise) -> None:
 
 
 def test_batched_joseph_update_equals_the_single_rule_and_isolates_a_bad_row() -> None:
-    """The stacked update against the one-belief rule (``_kalman_update``, cho_solve), and a
+    """The stacked update against the one-belief rule (``kalman_update``, cho_solve), and a
     row whose innovation covariance is indefinite: it alone is skipped, the others are not."""
     from estimator_service.filters.batched import joseph_update_many
-    from estimator_service.filters.kalman import _kalman_update
+    from estimator_service.filters.kalman import kalman_update
 
     rng = np.random.default_rng(5)
     b, n, q = 6, 5, 3
@@ -466,7 +466,7 @@ def test_batched_joseph_update_equals_the_single_rule_and_isolates_a_bad_row() -
 
     def single(i: int):
         s = h[i] @ cov[i] @ h[i].T + np.diag(noise[i])
-        return _kalman_update(GaussianBelief(mean[i], cov[i]), r[i], s, cov[i] @ h[i].T, wrap, h[i], noise[i])
+        return kalman_update(GaussianBelief(mean[i], cov[i]), r[i], s, cov[i] @ h[i].T, wrap, h[i], noise[i])
 
     for bad in (None, 2):
         if bad is not None:
@@ -757,7 +757,7 @@ def test_a_batch_of_ekf_updates_is_the_joseph_form_computed_once_for_all() -> No
     """The batched EKF update equals the single-belief rule row by row without falling back
     to it (the fallback raises here), and its covariances are exactly symmetric."""
     from estimator_service.filters.batched import implausible_many, joseph, joseph_update_many
-    from estimator_service.filters.kalman import _kalman_update
+    from estimator_service.filters.kalman import kalman_update
 
     rng = np.random.default_rng(4)
     b, n, q = 3, 4, 2
@@ -772,7 +772,7 @@ def test_a_batch_of_ekf_updates_is_the_joseph_form_computed_once_for_all() -> No
     out = joseph_update_many(mean, cov, r, h, r_noise, wrap, no_fallback)
     for i, (post, info) in enumerate(out):
         s = h[i] @ cov[i] @ h[i].T + np.diag(r_noise[i])
-        want, want_info = _kalman_update(
+        want, want_info = kalman_update(
             GaussianBelief(mean[i], cov[i]), r[i], s, cov[i] @ h[i].T, wrap, h[i], r_noise[i]
         )
         np.testing.assert_allclose(post.mean, want.mean, rtol=1e-10, atol=1e-12)
@@ -946,3 +946,43 @@ def test_a_prediction_with_a_finite_mean_but_no_covariance_keeps_the_belief() ->
     nan_cov = GaussianBelief(PRIOR.mean, np.full((4, 4), np.nan))
     post, info = ekf.step(nan_cov, np.zeros(2), np.array([0.4, -0.1, 0.3]), np.ones(3, bool))
     assert post is nan_cov and info.diverged
+
+
+def test_an_update_whose_posterior_overflows_or_cannot_be_factored_is_skipped() -> None:
+    """With a positive-definite ``S`` the update is still skipped (the prior kept, divergence
+    flagged, the NIS and its degrees of freedom reported) when the posterior mean overflows,
+    when the covariance overflows, or when no factor of it exists; the batched update hands
+    such a batch to the single rule row by row."""
+    from estimator_service.filters.batched import joseph_update_many
+    from estimator_service.filters.common import StepInfo
+    from estimator_service.filters.kalman import kalman_update
+
+    one = np.array([[1.0]])
+    wrap = Wrapping.none(1, 1)
+    cases = {  # prior, innovation, S, cross-covariance, Joseph H and R (None: P - K S K^T)
+        "mean overflows": (GaussianBelief(np.array([1.797e308]), np.array([[1e305]])), [1e306], 1e305 + 1.0,
+                           [[1e305]], one, [1.0]),
+        "covariance overflows": (GaussianBelief(np.zeros(1), one), [0.0], 1.0, [[1e200]], one, [1.0]),
+        "no factor": (GaussianBelief(np.zeros(2), np.full((2, 2), 1.7e308)), [0.5], 1.0, [[0.0], [0.0]],
+                      None, None),
+    }  # fmt: skip
+    for name, (prior, r, s, pxz, h, noise) in cases.items():
+        r, s = np.array(r), np.array([[s]])
+        nis = float(np.sum((r / math.sqrt(s[0, 0])) ** 2))
+        post, info = kalman_update(prior, r, s, np.array(pxz), wrap if h is not None else Wrapping.none(2, 1),
+                                   h, None if noise is None else np.array(noise))  # fmt: skip
+        assert post is prior, name
+        assert info.diverged and info.dof == 1 and info.nis == pytest.approx(nis, rel=1e-12), name
+    prior, r, s, pxz, h, noise = cases["mean overflows"]
+    calls = []
+
+    def single(i: int):
+        calls.append(i)
+        return prior, StepInfo(1.0, 1, True)
+
+    mean = np.array([[0.0], prior.mean])
+    cov = np.stack([one, prior.cov])
+    out = joseph_update_many(
+        mean, cov, np.array([[0.1], r]), np.stack([one, one]), np.ones((2, 1)), wrap, single
+    )
+    assert calls == [0, 1] and all(o[1].diverged for o in out)  # the overflowing row spoils none

@@ -238,14 +238,19 @@ def test_threaded_inverse_blocks_give_the_same_numbers(monkeypatch) -> None:
     factors = [np.tril(rng.normal(size=(40, 40))) for _ in range(5)]
     blocks = inverse.InverseBlocks.from_factors([*factors[:2], None, *factors[2:]], 6, 40)
     ks = rng.normal(size=(6, 3, 40))
-    monkeypatch.setattr(inverse, "THREADED_MIN_BYTES", 0)
+    monkeypatch.setattr(inverse, "THREADED_MIN_BYTES", blocks.nbytes)  # at the threshold: threads
     monkeypatch.setattr(inverse, "blas_threads", lambda: 2)  # the split, on any machine
-    groups = []
-    real = inverse.over_outputs
+    groups, shares = [], []
+    real, real_norms = inverse.over_outputs, inverse.InverseBlocks.sq_norms
     monkeypatch.setattr(inverse, "over_outputs", lambda fn, w: groups.append(w) or real(fn, w))
+    monkeypatch.setattr(
+        inverse.InverseBlocks,
+        "sq_norms",
+        lambda self, k, *a: shares.append(len(k)) or real_norms(self, k, *a),
+    )
     with threadpool_limits(2):
         threaded = blocks.sq_norms_threaded(ks)
-    assert groups == [2]
+    assert groups == [2] and sorted(shares) == [3, 3]  # each thread its own half of the outputs
     np.testing.assert_array_equal(threaded, blocks.sq_norms(ks))
     direct = [np.sum((f @ k.T) ** 2, axis=0) for f, k in zip(factors, ks[[0, 1, 3, 4, 5]], strict=True)]
     np.testing.assert_allclose(threaded[[0, 1, 3, 4, 5]], direct, rtol=1e-12)
@@ -261,16 +266,20 @@ def test_inverse_factor_refuses_an_ill_conditioned_factor() -> None:
 
 
 # -- sparse, heteroscedastic, enhanced ---------------------------------------------------
-def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy) -> None:
+@pytest.mark.parametrize("queries", [25, 700])
+def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy, queries: int) -> None:
+    """Both outputs have their own length scales, signal and noise variances; 700 queries
+    without a Jacobian take the sparse GP's output-by-output batch path."""
     x, y = toy
     x, y = x[:40], y[:40]
-    theta = np.array([[0.1, 0.3, 0.0, math.log(0.2)], [-0.2, 0.5, 0.3, math.log(0.1)]])
+    theta = np.array([[0.1, 0.3, 0.0, math.log(0.2)], [-0.2, 0.5, 0.6, math.log(0.1)]])
     xs, ys = identity_scalers(2, 2)
     sparse = SparseGP.from_params(x, y, theta, np.stack([x, x]), xs, ys)
     exact = ExactGP.from_theta(x, y, theta, xs, ys)
-    q = np.random.default_rng(7).uniform(-3, 3, (25, 2))
-    a, b = sparse.predict(q, return_jac=True), exact.predict(q, return_jac=True)
-    for u, v in ((a.mean, b.mean), (a.var, b.var), (a.jac, b.jac)):
+    q = np.random.default_rng(7).uniform(-3, 3, (queries, 2))
+    jac = queries < 50
+    a, b = sparse.predict(q, return_jac=jac), exact.predict(q, return_jac=jac)
+    for u, v in ((a.mean, b.mean), (a.var, b.var), *([(a.jac, b.jac)] if jac else [])):
         np.testing.assert_allclose(u, v, rtol=1e-6, atol=1e-8)
     nll_sparse = sparse_nll(np.concatenate([theta[0], x.ravel()]), x, y[:, 0], 40)[0]
     assert nll_sparse == pytest.approx(exact_nll(theta[0], x, y[:, 0])[0], rel=1e-8)
@@ -327,12 +336,30 @@ def test_posterior_is_immutable(models) -> None:
         gp.theta = gp.theta  # frozen dataclass
 
 
-def test_training_reports_progress_through_callback(toy) -> None:
+def test_training_reports_progress_per_output_through_callback(toy) -> None:
     x, y = toy
     seen = []
     fit_exact(x[:30], y[:30, 0], restarts=1, max_iter=5, callback=seen.append)
     assert seen and seen[0].iteration == 1 and np.isfinite(seen[-1].objective)
     assert seen[-1].model == "exact"
+    seen.clear()
+    fit_sparse(x[:30], y[:30], n_pseudo=5, max_iter=3, callback=seen.append)
+    assert {s.output for s in seen} == {0, 1} and {s.model for s in seen} == {"sparse"}
+
+
+def test_a_fit_draws_from_the_generator_it_is_given(toy) -> None:
+    """Restarts and the hyperparameter subset come from ``rng``: the generator advances, and
+    the same seed gives the same fit."""
+    x, y = toy
+    rng = np.random.default_rng(5)
+    before = rng.bit_generator.state
+    a = fit_exact(x, y[:, 0], restarts=2, max_iter=5, hyper_points=40, rng=rng)
+    assert rng.bit_generator.state != before
+    b = fit_exact(x, y[:, 0], restarts=2, max_iter=5, hyper_points=40, rng=np.random.default_rng(5))
+    np.testing.assert_array_equal(a.theta, b.theta)
+    before = rng.bit_generator.state
+    fit_hetero(x[:40], y[:40, 0], iterations=1, restarts=1, max_iter=3, hyper_points=20, rng=rng)
+    assert rng.bit_generator.state != before
 
 
 # -- persistence ----------------------------------------------------------------------------
@@ -378,8 +405,8 @@ def test_malformed_model_files_are_rejected(models, tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("x", "y", "match"),
     [
-        (np.array([[0.0], [np.nan], [1.0]]), np.zeros(3), "NaN"),
-        (np.zeros((3, 1)), np.array([0.0, np.inf, 1.0]), "NaN or Inf"),
+        (np.array([[0.0], [np.nan], [1.0]]), np.zeros(3), "training X contains NaN or Inf .first at row 1"),
+        (np.zeros((3, 1)), np.array([0.0, np.inf, 1.0]), "training Y contains NaN or Inf .first at row 1"),
         (np.zeros((4, 1)), np.zeros(3), "rows"),
         (np.zeros((2, 1)), np.zeros(2), "at least"),
         (np.zeros(5), np.zeros(5), "2-D"),
@@ -535,3 +562,40 @@ def test_an_enhanced_gps_variance_includes_the_noise_by_default() -> None:
     with_noise, latent = egp.predict(q), egp.predict(q, include_noise=False)
     np.testing.assert_array_equal(with_noise.var, egp.residual.predict(q).var)
     assert np.all(with_noise.var > latent.var + 1e-3)
+
+
+def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:
+    """A singular kernel (repeated inputs, no noise): jitter starts at 1e-10 of the mean
+    diagonal and grows tenfold per failure, so the one added is at most 1e-10 x 10^7 of it and
+    the factor reproduces ``K + jitter I``; a zero diagonal is refused."""
+    from estimator_service.gp.linalg import NotPositiveDefiniteError, robust_cholesky
+
+    x = np.repeat(np.linspace(0, 1, 4), 2)[:, None]
+    k = 2.0 * np.exp(-0.5 * (x - x.T) ** 2)
+    l, jitter = robust_cholesky(k)
+    steps = math.log10(jitter / (2.0 * 1e-10))  # mean diagonal 2
+    assert abs(steps - round(steps)) < 1e-9 and 0 <= round(steps) <= 7
+    np.testing.assert_allclose(l @ l.T, k + jitter * np.eye(8), atol=1e-12)
+    with pytest.raises(NotPositiveDefiniteError):
+        robust_cholesky(np.zeros((3, 3)))
+
+
+def test_a_hyperparameter_subset_draws_distinct_points() -> None:
+    from estimator_service.gp.hyper import random_subset
+
+    sub = random_subset(50, 40, np.random.default_rng(0))
+    assert len(sub) == 40 and len(np.unique(sub)) == 40 and np.all(np.diff(sub) > 0)
+    assert random_subset(50, 50, np.random.default_rng(0)) is None
+
+
+def test_a_batch_larger_than_the_memory_chunk_predicts_what_one_block_does(models, monkeypatch) -> None:
+    import estimator_service.gp.exact as exact
+
+    gp = models["exact"]
+    q = np.random.default_rng(9).uniform(-2, 2, (35, 2))
+    whole = gp.predict(q, return_jac=True)
+    monkeypatch.setattr(exact, "_CHUNK_BYTES", 8 * gp.output_dim * len(gp.x_train) * 10)  # 10 queries
+    parts = gp.predict(q, return_jac=True)
+    for a, b in ((parts.mean, whole.mean), (parts.var, whole.var), (parts.jac, whole.jac)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    assert gp.predict(q, return_var=False).var is None

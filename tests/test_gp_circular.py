@@ -105,3 +105,127 @@ def test_bad_arguments_name_the_problem(data, kwargs, match: str) -> None:
     x, y = data
     with pytest.raises(ValueError, match=match):
         fit_circular(x, y, lambda a, b: fit_exact(a, b), **kwargs)
+
+
+class _Linear:
+    """A stand-in inner GP on 2 inputs with 4 outputs (cos, other, other, sin): linear means
+    ``a x + b``, distinct constant variances (plus 0.5 with noise), and their Jacobian."""
+
+    kind = "exact"
+    input_dim, output_dim = 2, 4
+    a = np.array([[0.3, -0.2], [1.0, 0.0], [0.0, 1.0], [0.1, 0.4]])
+    b = np.array([0.6, 0.0, 0.0, 0.5])
+    v = np.array([0.01, 0.2, 0.3, 0.04])
+
+    def __init__(self) -> None:
+        self.noise_asked: list[bool] = []
+
+    def predict(self, x, *, return_var=True, return_jac=False, include_noise=True):
+        from estimator_service.gp import GPPrediction
+
+        self.noise_asked.append(include_noise)
+        var = np.tile(self.v + (0.5 if include_noise else 0.0), (len(x), 1)) if return_var else None
+        jac = np.broadcast_to(self.a, (len(x), 4, 2)).copy() if return_jac else None
+        return GPPrediction(x @ self.a.T + self.b, var, jac)
+
+
+def test_the_angle_output_follows_the_delta_method_of_atan2() -> None:
+    """The angle from a ``(cos, sin)`` pair with distinct variances: its mean is
+    ``atan2(s, c) / k``, its variance ``g_c^2 v_c + g_s^2 v_s`` and its Jacobian
+    ``g_c dc/dx + g_s ds/dx``, with the gradient ``g`` of ``atan2(s, c) / k`` taken by central
+    differences; the other outputs pass through; noise is included by default."""
+    inner = _Linear()
+    gp = CircularGP(inner, (), angle_output=0, period=math.pi)
+    x = np.array([[0.2, -0.4], [1.0, 0.7]])
+    out = gp.predict(x, return_jac=True)
+    k, h = 2.0, 1e-6
+    c, s = (x @ inner.a.T + inner.b)[:, 0], (x @ inner.a.T + inner.b)[:, 3]
+    g_c = (np.arctan2(s, c + h) - np.arctan2(s, c - h)) / (2 * h * k)
+    g_s = (np.arctan2(s + h, c) - np.arctan2(s - h, c)) / (2 * h * k)
+    np.testing.assert_allclose(out.mean[:, 0], np.arctan2(s, c) / k, rtol=1e-12)
+    np.testing.assert_allclose(out.var[:, 0], g_c**2 * 0.51 + g_s**2 * 0.54, rtol=1e-6)
+    np.testing.assert_allclose(
+        out.jac[:, 0], g_c[:, None] * inner.a[0] + g_s[:, None] * inner.a[3], rtol=1e-6
+    )
+    np.testing.assert_allclose(out.var[:, 1:], np.tile(inner.v[1:3] + 0.5, (2, 1)))
+    assert inner.noise_asked == [True]
+    plain = gp.predict(x, return_var=False)
+    assert plain.var is None and plain.jac is None and np.array_equal(plain.mean, out.mean)
+    assert gp.predict(x, include_noise=False).var[0, 0] < out.var[0, 0]
+    assert CircularGP(inner, ()).predict(x, return_var=False).var is None  # no angle output
+
+
+@pytest.mark.parametrize(
+    ("angle_inputs", "meta", "ok"),
+    [
+        ([0], [1, math.pi], True),  # the first input
+        ([2], [1, math.pi], False),  # one past the last input (d = 2)
+        ([-1], [1, math.pi], False),
+        ([0, 0], [1, math.pi], False),  # twice
+        ([1], [0, math.pi], True),  # the first output
+        ([1], [-1, math.pi], True),  # no angular output
+        ([1], [2, math.pi], False),  # one past the last output (P = 2)
+        ([1], [-2, math.pi], False),
+        ([1], [1, 0.5], True),  # any positive period
+        ([1], [1, 0.0], False),
+    ],
+)
+def test_circular_files_are_checked_at_each_bound(model, tmp_path: Path, angle_inputs, meta, ok) -> None:
+    """A circular model file's angle inputs must be distinct inputs in ``[0, d)`` and its
+    angle output in ``[-1, P)`` with a positive period; the error names the file and field."""
+    path = save_gp(model, tmp_path / "c.npz")
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    arrays["angle_inputs"], arrays["angle_output"] = np.array(angle_inputs, float), np.array(meta, float)
+    np.savez(tmp_path / "edit.npz", **arrays)
+    if ok:
+        back = load_gp(tmp_path / "edit.npz")
+        assert back.angle_inputs == tuple(angle_inputs) and back.angle_output == meta[0]
+        return
+    field = "angle_inputs" if angle_inputs != [1] else "angle_output"
+    with pytest.raises(ModelFileError, match=rf"edit\.npz.*{field}"):
+        load_gp(tmp_path / "edit.npz")
+
+
+def test_an_angle_output_needs_two_inner_outputs(tmp_path: Path) -> None:
+    """An angular output is a ``(cos, sin)`` pair: a file whose inner GP has one output and
+    declares an angular output is refused."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-1, 1, (30, 1))
+    gp = fit_circular(x, np.c_[x[:, 0]], lambda a, b: fit_exact(a, b, max_iter=5))
+    path = save_gp(gp, tmp_path / "one.npz")
+    with np.load(path) as f:
+        arrays = {k: f[k] for k in f.files}
+    arrays["angle_output"] = np.array([0.0, math.pi])
+    np.savez(tmp_path / "one.npz", **arrays)
+    with pytest.raises(ModelFileError, match="angle_output"):
+        load_gp(tmp_path / "one.npz")
+
+
+def test_a_circular_enhanced_gp_round_trips_with_its_parametric_mean(tmp_path: Path) -> None:
+    """The parametric mean and its Jacobian given to :func:`load_gp` reach the enhanced GP
+    inside a circular one: the loaded model predicts what the fitted one did."""
+    from estimator_service.gp import fit_enhanced
+
+    rng = np.random.default_rng(5)
+    x = np.c_[rng.uniform(-1, 1, 60), rng.uniform(-math.pi, math.pi, 60)]
+    y = np.c_[3.0 * x[:, 0] + np.sin(x[:, 1])]
+
+    def mean_fn(f):  # on the features [s, cos, sin]
+        return 3.0 * f[:, :1]
+
+    def mean_jac(f):
+        return np.broadcast_to(np.array([[3.0, 0.0, 0.0]]), (len(f), 1, 3)).copy()
+
+    gp = fit_circular(
+        x,
+        y,
+        lambda a, b: fit_enhanced(a, b, mean_fn, fit_exact, mean_jacobian=mean_jac, max_iter=10),
+        angle_inputs=(1,),
+    )
+    back = load_gp(save_gp(gp, tmp_path / "e.npz"), mean_function=mean_fn, mean_jacobian=mean_jac)
+    q = np.array([[2.5, 0.3], [-3.0, -2.0]])  # far from the data: the parametric mean dominates
+    a, b = gp.predict(q, return_jac=True), back.predict(q, return_jac=True)
+    np.testing.assert_allclose(b.mean, a.mean, rtol=1e-12)
+    np.testing.assert_allclose(b.jac, a.jac, rtol=1e-12)
+    assert abs(b.jac[0, 0, 0] - 3.0) < 0.5

@@ -233,3 +233,163 @@ def test_the_calibration_choices_training_reports_are_read_back_per_kind(tmp_pat
         "egp": {"applied": True, "family": "matched", "factor": 2.0, "reason": "higher held-out likelihood",
                 "heldout_mll": 3.1235, "uncalibrated_mll": 2.9877},
     }  # fmt: skip
+
+
+def test_camera_jacobian_is_continuous_across_the_ellipse_angles_cut(flight) -> None:
+    """An ellipse's orientation (period pi) jumps from about +pi/2 to -pi/2 as the blimp
+    yaws; at a state within 1e-9 of the jump the central differences straddle it, and the
+    wrapped differences keep the Jacobian equal to its value just beside the cut."""
+    cam = CameraModel(CAMS, np.array([0.85, 0.32]), np.ones(10))
+    x0 = flight["x"][10].copy()
+
+    def angle(yaw: float) -> float:
+        x = x0.copy()
+        x[5] = yaw
+        return float(cam.mean(x[None])[0, 4])
+
+    yaws = np.linspace(-math.pi, math.pi, 721)
+    jumps = [i for i in range(720) if abs(angle(yaws[i + 1]) - angle(yaws[i])) > 2.0]
+    assert jumps, "no yaw puts camera 0's ellipse angle across its cut"
+    lo, hi = yaws[jumps[0]], yaws[jumps[0] + 1]
+    while hi - lo > 1e-9:  # bisect onto the cut
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if abs(angle(mid) - angle(lo)) < 1.0 else (lo, mid)
+    at, beside = x0.copy(), x0.copy()
+    at[5], beside[5] = 0.5 * (lo + hi), 0.5 * (lo + hi) + 1e-4
+    j = cam.observe(np.stack([at, beside]), jac=True).jac[:, 4]
+    assert np.all(np.abs(j) < 1e3)
+    np.testing.assert_allclose(j[0], j[1], rtol=0.05, atol=1e-3 * np.abs(j[1]).max())
+
+
+def test_the_parametric_prediction_gives_no_jacobian_unless_asked(flight) -> None:
+    ode = BlimpODE(DEFAULT_PARAMS, np.full(12, 1e-4))
+    x, u = flight["x"][:3], flight["u"][:3]
+    plain, full = ode.predict(x, u), ode.predict(x, u, jac=True)
+    assert plain.jac is None and full.jac.shape == (3, 12, 12)
+    np.testing.assert_allclose(plain.mean, full.mean, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(plain.var, np.full((3, 12), 1e-4))
+
+
+def test_an_ellipse_is_read_from_its_shape_matrix() -> None:
+    """``S = R(t) diag((w/2)^2, (h/2)^2) R(t)^T`` is the ellipse of width ``w``, height ``h``
+    and orientation ``t``, for batches of any leading shape; an upright ellipse (``t = pi/2``)
+    reads ``-pi/2`` by the one angle rule."""
+    from estimator_service.models.camera import ellipse_from_shape
+
+    rng = np.random.default_rng(6)
+    w, h = rng.uniform(20, 60, (3, 4)), rng.uniform(0.4, 1.6, (3, 4))  # (h/2)^2 < 1
+    t = rng.uniform(-1.5, 1.5, (3, 4))
+    t[0, 0] = math.pi / 2
+    c, s = np.cos(t), np.sin(t)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (3, 4, 2, 2)
+    shape = rot @ (np.stack([w / 2, h / 2], -1)[..., None] ** 2 * np.eye(2)) @ rot.swapaxes(-1, -2)
+    centre = rng.uniform(0, 600, (3, 4, 2))
+    got = ellipse_from_shape(centre, shape)
+    want = np.stack([centre[..., 0], centre[..., 1], w, h, np.where(t == math.pi / 2, -math.pi / 2, t)], -1)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+
+
+def test_camera_fit_checks_each_shape_and_measures_the_noise_of_the_frames_seen(flight) -> None:
+    """Each mismatch alone is refused; the noise is the mean squared residual of the frames
+    seen (angles wrapped), per output, plus 1e-9, none of the unseen frames counted."""
+    from estimator_service.angles import wrap_angle
+    from estimator_service.models.camera import project_ellipses
+
+    x = flight["x"][:120]
+    rng = np.random.default_rng(7)
+    z = CameraModel(CAMS, np.array([0.85, 0.32]), np.ones(10)).mean(x) + rng.normal(0, 1.5, (120, 10))
+    valid = rng.uniform(size=(120, 2)) < 0.8
+    valid[:, 1] = np.arange(120) == 5  # the second camera saw one frame
+    for bad in ((x[:-1], z, valid), (x, z[:, :-1], valid), (x, z, valid[:, :1])):
+        with pytest.raises(ValueError, match="need x"):
+            fit_camera_model(CAMS, *bad)
+    fit = fit_camera_model(CAMS, x, z, valid)
+    periods = np.tile([0.0, 0.0, 0.0, 0.0, math.pi], 2)
+    r = wrap_angle(project_ellipses(CAMS, x, fit.semi_axes) - z, periods)
+    seen = np.repeat(valid, 5, axis=1)
+    want = np.where(seen, r * r, 0.0).sum(axis=0) / seen.sum(axis=0) + 1e-9
+    np.testing.assert_allclose(fit.noise_var, want, rtol=1e-12)
+    np.testing.assert_allclose(fit.noise_var[5:], r[5, 5:] ** 2 + 1e-9, rtol=1e-12)
+    assert fit.noise_var.shape == (10,)
+
+
+def test_camera_rotation_and_ellipses_agree_with_the_simulators_own_geometry() -> None:
+    """Against the simulator's independent code (``gpbf_env.camera``, undistorted): the
+    body-to-world rotation equals ``Rz(psi) Ry(theta) Rx(phi)`` exactly, and the projected
+    principal axes give the closed-form rim ellipse's centre, size and orientation to a few
+    per cent (the model is that approximation; a wrong axis or scale is off many fold)."""
+    import dataclasses
+
+    from estimator_service.models.camera import _rotation
+    from gpbf_env.camera import default_cameras, euler_to_matrix, outline_ellipses
+
+    rng = np.random.default_rng(8)
+    euler = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), rng.uniform(-math.pi, math.pi, 20)]
+    np.testing.assert_allclose(_rotation(euler), euler_to_matrix(euler), atol=1e-15)
+    sim = tuple(dataclasses.replace(c, k1=0.0, k2=0.0) for c in default_cameras((10.0, 6.0, 4.0)))
+    cams = tuple(PinholeCalibration(c.position, c.rotation, c.focal, c.principal_point) for c in sim)
+    x = np.zeros((20, 12))
+    x[:, :3] = rng.uniform([3, 2, 1.2], [7, 4, 2.4], (20, 3))
+    x[:, 3:6] = euler
+    ours = CameraModel(cams, np.array([0.85, 0.32]), np.ones(5 * len(cams))).mean(x).reshape(20, -1, 5)
+    truth, seen = outline_ellipses(sim, x[:, :3], euler_to_matrix(euler), (0.85, 0.32, 0.32))
+    truth = truth.reshape(20, -1, 5)
+    ok = seen.reshape(20, -1)
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(ours[ok][:, :2], truth[ok][:, :2], atol=10.0)  # centre, px
+    np.testing.assert_allclose(ours[ok][:, 2:4], truth[ok][:, 2:4], rtol=0.05)  # width, height (1.3 %)
+    turn = (ours[ok][:, 4] - truth[ok][:, 4] + math.pi / 2) % math.pi - math.pi / 2
+    round_ = truth[ok][:, 3] > 0.9 * truth[ok][:, 2]  # a near-circle's orientation is arbitrary
+    assert np.all(np.abs(turn[~round_]) < 0.02)  # 0.003 rad measured
+
+
+def test_the_odes_kinematics_are_the_rigid_body_rates() -> None:
+    """Whatever the forces, position changes at ``R(euler) v`` (body velocities turned into the
+    world by the simulator's own ``Rz Ry Rx``) and the Euler angles at the ZYX rates
+    ``phi' = p + (q sin phi + r cos phi) tan theta``, ``theta' = q cos phi - r sin phi``,
+    ``psi' = (q sin phi + r cos phi) / cos theta``; read from one RK4 step of 1e-7 s."""
+    from gpbf_env.camera import euler_to_matrix
+
+    rng = np.random.default_rng(9)
+    x = np.c_[rng.uniform(-1, 1, (6, 3)), rng.uniform(-0.6, 0.6, (6, 2)), rng.uniform(-3, 3, 6),
+              rng.uniform(-0.5, 0.5, (6, 6))]  # fmt: skip
+    u = rng.uniform(-1, 1, (6, 3))
+    dt = 1e-7
+    rate = (integrate(x, u, DEFAULT_PARAMS, (0.44, 0.8), dt, 1) - x) / dt
+    v, (phi, theta), (p, q, r) = x[:, 6:9], x[:, 3:5].T, x[:, 9:12].T
+    np.testing.assert_allclose(rate[:, :3], np.einsum("mij,mj->mi", euler_to_matrix(x[:, 3:6]), v), atol=1e-6)
+    turn = q * np.sin(phi) + r * np.cos(phi)
+    euler_rates = np.c_[p + turn * np.tan(theta), q * np.cos(phi) - r * np.sin(phi), turn / np.cos(theta)]
+    np.testing.assert_allclose(rate[:, 3:6], euler_rates, atol=1e-6)
+
+
+def test_the_ode_fit_checks_its_shapes_and_keeps_the_measured_constants(flight) -> None:
+    x, u, xn = flight["x"][:60], flight["u"][:60], flight["x_next"][:60]
+    for bad in ((x[:, :11], u, xn[:, :11]), (x, u[:, :2], xn), (x, u, xn[:-1])):
+        with pytest.raises(ValueError, match=r"need x \(N, 12\)"):
+            fit_blimp_ode(*bad)
+    ode = fit_blimp_ode(x, u, xn, mass=0.5, tail_arm=0.7, dt=0.25, max_nfev=5)
+    assert (ode.mass, ode.tail_arm, ode.dt) == (0.5, 0.7, 0.25)
+
+
+def test_gp_model_wrappers_pass_the_gps_variances_through_by_default() -> None:
+    """The prediction and observation wrappers (and a noise-scaled prediction) return the
+    GP's own variances unless told not to, and the state block of its Jacobian."""
+    from estimator_service.gp import ExactGP, Scaler
+    from estimator_service.models.calibration import NoiseScaledPrediction
+    from estimator_service.models.gp_models import GPObservationModel, GPPredictionModel
+
+    rng = np.random.default_rng(10)
+    xs, ys = rng.uniform(-1, 1, (25, 3)), rng.normal(size=(25, 2))
+    theta = np.log([[0.8, 1.1, 0.9, 1.0, 0.2], [1.3, 0.7, 1.2, 2.0, 0.1]])
+    gp = ExactGP.from_theta(xs, ys, theta, Scaler(np.zeros(3), np.ones(3)), Scaler(np.zeros(2), np.ones(2)))
+    x, u = rng.uniform(-1, 1, (4, 2)), rng.uniform(-1, 1, (4, 1))
+    want = gp.predict(np.c_[x, u], return_jac=True)
+    pred = GPPredictionModel(gp, 2)
+    np.testing.assert_allclose(pred.predict(x, u).var, want.var, rtol=1e-12)
+    np.testing.assert_allclose(pred.predict(x, u, jac=True).jac, want.jac[:, :, :2], rtol=1e-12)
+    scaled = NoiseScaledPrediction(pred, np.array([2.0, 3.0]))
+    np.testing.assert_allclose(scaled.predict(x, u).var, want.var * [2.0, 3.0], rtol=1e-12)
+    obs = GPObservationModel(gp)
+    np.testing.assert_allclose(obs.observe(np.c_[x, u]).var, want.var, rtol=1e-12)
+    assert not obs.observe(np.c_[x, u], var=False).var.any()

@@ -60,3 +60,32 @@ def test_mutation_run_and_summary_on_a_tiny_project(tmp_path: Path) -> None:
     assert len(by_rule) == 1 and by_rule[0]["reason"] == "equivalent: a label nobody reads"
     assert res["survivors_explained"] == 2 and res["survivors_unexplained"] == len(survivors) - 2
     assert "killed ratio" in (out / "report.md").read_text()
+
+
+def _script(name: str):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "docs" / "results" / "mutation" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_sampled_mutants_give_a_stratified_estimate_with_its_interval() -> None:
+    """A module of 10 mutants: 4 run before (3 killed), 6 not; 3 of those drawn and run (2
+    killed): 3 + 2 + 3 x 2/3 = 7 expected killed, and the interval from the binomial variance
+    with the finite-population correction, 1.96 sqrt(3^2 (2/3)(1/3) / 3 (1 - 3/6)) / 10."""
+    sample, summarise = _script("sample"), _script("summarise")
+    per = {f"m{i}": s for i, s in enumerate(["killed"] * 3 + ["survived"] + ["not checked"] * 6)}
+    drawn = sample.draw({"pkg/a.py": [k for k, s in per.items() if s == "not checked"]}, 0.5, 0, ())
+    unrun = {"pkg/a.py": [k for k, s in per.items() if s == "not checked"]}
+    assert drawn == sample.draw(unrun, 0.5, 0, ())  # same seed, same draw
+    assert len(drawn["pkg/a.py"]) == 3 and set(drawn["pkg/a.py"]) <= {f"m{i}" for i in range(4, 10)}
+    for name, status in zip(drawn["pkg/a.py"], ["killed", "timeout", "survived"], strict=True):
+        per[name] = status
+    est = summarise.estimate({"pkg/a.py": per}, {"population": {"pkg/a.py": 6}, "sample": drawn, "seed": 0})
+    half = 1.96 * (9 * (2 / 3) * (1 / 3) / 3 * 0.5) ** 0.5 / 10
+    assert est["killed_ratio"] == 0.7 and est["ci95"] == [round(0.7 - half, 4), round(0.7 + half, 4)]
+    full = sample.draw({"pkg/a.py": ["x", "y"], "pkg/b.py": ["z"]}, 0.1, 3, ("pkg/b.py",))
+    assert len(full["pkg/a.py"]) == 1 and full["pkg/b.py"] == ["z"]
+    assert summarise.estimate({"pkg/a.py": {"x": "not checked"}}, {"sample": {}})["killed_ratio"] is None

@@ -258,3 +258,32 @@ def test_a_tampered_parametric_file_is_refused_by_name(rover: System, trained) -
     path.write_text(json.dumps(doc))
     with pytest.raises(UserModelError, match="values must be finite numbers"):
         load_user_models(path, rover)
+
+
+def test_a_shared_sensor_type_is_its_gp_at_each_sensors_constants() -> None:
+    """Each sensor's block of a shared type (outputs side by side, sensor by sensor) is the
+    GP's prediction at ``[x, c_s]``: means, variances and the state block of the Jacobian;
+    a subset of columns evaluates only its sensors; without variances the block is zero."""
+    from estimator_service.gp import ExactGP, Scaler
+
+    rng = np.random.default_rng(2)
+    xs, ys = rng.uniform(-2, 2, (30, 4)), rng.normal(size=(30, 2))
+    theta = np.log([[0.9, 1.2, 0.7, 1.5, 1.0, 0.1], [1.4, 0.6, 1.1, 0.8, 2.0, 0.3]])
+    gp = ExactGP.from_theta(xs, ys, theta, Scaler(np.zeros(4), np.ones(4)), Scaler(np.zeros(2), np.ones(2)))
+    consts = np.array([[0.5, -1.0], [1.5, 0.2], [-0.7, 0.9]])
+    shared = SharedGPObservation(gp, consts)
+    x = rng.uniform(-1, 1, (5, 2))
+    out = shared.observe(x, jac=True)
+    assert (shared.state_dim, shared.obs_dim) == (2, 6)
+    for s, c in enumerate(consts):
+        p = gp.predict(np.c_[x, np.tile(c, (5, 1))], return_jac=True)
+        cols = slice(2 * s, 2 * s + 2)
+        np.testing.assert_allclose(out.mean[:, cols], p.mean, rtol=1e-12)
+        np.testing.assert_allclose(out.var[:, cols], p.var, rtol=1e-12)
+        np.testing.assert_allclose(out.jac[:, cols], p.jac[:, :, :2], rtol=1e-12)
+    some = shared.observe_columns(x, np.array([5, 0]), jac=True)
+    np.testing.assert_allclose(some.var, out.var[:, [5, 0]], rtol=1e-12)
+    np.testing.assert_allclose(some.jac, out.jac[:, [5, 0]], rtol=1e-12)
+    bare = shared.observe(x, var=False)
+    np.testing.assert_allclose(bare.mean, out.mean, rtol=1e-12)
+    assert bare.jac is None and bare.var.shape == (5, 6) and not bare.var.any()

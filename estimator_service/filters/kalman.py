@@ -29,12 +29,12 @@ from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
-__all__ = ["EKF", "UKF", "sigma_weights", "unscented_transform"]
+__all__ = ["EKF", "UKF", "kalman_update", "sigma_weights", "unscented_transform"]
 
 FloatArray = NDArray[np.float64]
 
 
-def _kalman_update(
+def kalman_update(
     prior: GaussianBelief, r: FloatArray, s: FloatArray, pxz: FloatArray,
     wrap: Wrapping, joseph_h: FloatArray | None = None, r_noise: FloatArray | None = None,
 ) -> tuple[GaussianBelief, StepInfo]:  # fmt: skip
@@ -54,9 +54,7 @@ def _kalman_update(
     else:  # UKF: P - K S K^T
         cov = prior.cov - k @ s @ k.T
     nis = nis_from_cholesky(ls, r)
-    if not finite(mean, cov):
-        return prior, StepInfo(nis, len(r), True)
-    pd = factorable(cov)
+    pd = factorable(cov) if finite(mean) else None  # factorable refuses a covariance that overflowed
     if pd is None:
         return prior, StepInfo(nis, len(r), True)
     return GaussianBelief(mean, pd[0]), StepInfo(nis, len(r), implausible(nis, len(r)))
@@ -204,7 +202,7 @@ class EKF(_GaussianFilter):
 
             def single(b: int, r=r, h=h, r_noise=r_noise, cov=cov, i=rows[j]) -> tuple:
                 s = h[b] @ cov[b] @ h[b].T + np.diag(r_noise[b])
-                return _kalman_update(priors[i[b]], r[b], s, cov[b] @ h[b].T, self._wrap, h[b], r_noise[b])
+                return kalman_update(priors[i[b]], r[b], s, cov[b] @ h[b].T, self._wrap, h[b], r_noise[b])
 
             out = joseph_update_many(mean, cov, r, h, r_noise, self._wrap, single)
             for i, (post, info) in zip(rows[j], out, strict=True):
@@ -381,5 +379,5 @@ class UKF(_GaussianFilter):
         dx = self._wrap.state_diff(x - prior.mean)
         pxz = (dx * wc[:, None]).T @ dz
         r = self._wrap.obs_diff(np.asarray(z, dtype=np.float64)[idx] - zhat, idx)
-        post, info = _kalman_update(prior, r, s, pxz, self._wrap)
+        post, info = kalman_update(prior, r, s, pxz, self._wrap)
         return self._adapted(post, prior, info), info

@@ -109,7 +109,7 @@ def update_many(
     z, valid = np.asarray(z, dtype=np.float64), np.asarray(valid, dtype=bool)
     rngs = _rngs(rng, len(priors))
     out: list[tuple[Any, StepInfo]] = [(p, StepInfo(ess=_ess(p))) for p in priors]
-    rows = np.flatnonzero(valid.any(axis=1)) if valid.size else np.zeros(0, np.intp)
+    rows = np.flatnonzero(valid.any(axis=1))
     if rows.size == 0:
         return out
     if batchable(filt):

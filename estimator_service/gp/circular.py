@@ -69,7 +69,7 @@ class CircularGP:
         xq = check_query(x, self.input_dim)
         p = self.inner.predict(
             circular_features(xq, self.angle_inputs),
-            return_var=return_var or self.angle_output >= 0,
+            return_var=return_var,
             return_jac=return_jac,
             include_noise=include_noise,
         )

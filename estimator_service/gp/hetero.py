@@ -9,6 +9,7 @@ depends on the input: ``var(x) = var_latent(x) + sn^2 exp(z_hat(x))``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,5 +145,4 @@ def fit_hetero(
 
 def _shift_mean(gp: ExactGP, shift: FloatArray) -> ExactGP:
     """The same GP with its output mean moved by ``shift (P,)``."""
-    ysc = Scaler(gp.y_scaler.mean + shift, gp.y_scaler.std)
-    return ExactGP(gp.x_scaler, ysc, gp.theta, gp.x_train, gp.chol_t, gp.alpha, gp.noise_profile)
+    return dataclasses.replace(gp, y_scaler=Scaler(gp.y_scaler.mean + shift, gp.y_scaler.std))

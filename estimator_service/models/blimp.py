@@ -153,9 +153,9 @@ class BlimpODE:
         m, n = x.shape
         xc = np.repeat(x[:, None, :], n, axis=1).astype(np.complex128)
         xc[:, np.arange(n), np.arange(n)] += 1j * h
-        uc = np.repeat(u[:, None, :], n, axis=1).reshape(m * n, -1).astype(np.complex128)
-        p = self.params.astype(np.complex128)
-        nxt = integrate(xc.reshape(m * n, n), uc, p, (self.mass, self.tail_arm), self.dt, self.substeps)
+        uc = np.repeat(u[:, None, :], n, axis=1).reshape(m * n, -1)  # real: promoted with the state
+        fixed = (self.mass, self.tail_arm)
+        nxt = integrate(xc.reshape(m * n, n), uc, self.params, fixed, self.dt, self.substeps)
         nxt = nxt.reshape(m, n, n)  # [row, input j, output i]
         return _change(nxt[:, 0].real, x), nxt.imag.transpose(0, 2, 1) / h - np.eye(n)
 

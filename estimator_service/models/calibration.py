@@ -335,4 +335,4 @@ def write_noise_scales(
 
 
 def _plain(o: object) -> object:
-    return o.tolist() if isinstance(o, np.ndarray) else float(o)  # type: ignore[arg-type]
+    return np.asarray(o).tolist()

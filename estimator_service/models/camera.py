@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from estimator_service.angles import wrap_angle
 from estimator_service.models.base import ModelOutput
 from estimator_service.reprs import short_repr
 
@@ -57,8 +58,7 @@ def ellipse_from_shape(centre: FloatArray, shape: FloatArray) -> FloatArray:
     """Ellipse ``(..., 5)`` from centre ``(..., 2)`` and shape ``S (..., 2, 2)``."""
     a, b, c = shape[..., 0, 0], shape[..., 0, 1], shape[..., 1, 1]
     half, rad = 0.5 * (a + c), np.sqrt(0.25 * (a - c) ** 2 + b * b)
-    angle = 0.5 * np.arctan2(2 * b, a - c)
-    angle = np.where(angle <= -math.pi / 2, angle + math.pi, angle)
+    angle = wrap_angle(0.5 * np.arctan2(2 * b, a - c), math.pi)
     w, h = 2 * np.sqrt(half + rad), 2 * np.sqrt(np.maximum(half - rad, 0.0))
     return np.stack([centre[..., 0], centre[..., 1], w, h, angle], axis=-1)
 
@@ -134,9 +134,7 @@ class CameraModel:
         pts = np.concatenate([x[:, None, :] + step * np.eye(n), x[:, None, :] - step * np.eye(n)], axis=1)
         f = self.mean(pts.reshape(-1, n)).reshape(m, 2, n, -1)
         d = f[:, 0] - f[:, 1]
-        periods = self.obs_periods
-        d = np.where(periods > 0, d - math.pi * np.round(d / math.pi), d)
-        return (d / (2 * step)).transpose(0, 2, 1)
+        return (wrap_angle(d, self.obs_periods) / (2 * step)).transpose(0, 2, 1)
 
 
 def fit_camera_model(
@@ -157,7 +155,7 @@ def fit_camera_model(
 
     def resid(ab: FloatArray) -> FloatArray:
         r = project_ellipses(cameras, x, np.exp(ab)) - z
-        r = np.where(periods > 0, r - math.pi * np.round(r / math.pi), r)
+        r = wrap_angle(r, periods)
         return np.where(mask, r, 0.0).ravel()
 
     res = least_squares(resid, np.log(initial_axes), method="trf")

@@ -11,6 +11,12 @@ Reads mutmut's per-file results under ``mutants/`` and writes, beside this scrip
   matches its change; a survivor without a reason is listed as ``unexplained``.
 - ``report.md``: the same for a reader.
 
+When the rest of the mutants was sampled (``sample.py``'s ``sample.json``, ``--sample``),
+``estimate`` gives the killed ratio over *all* configured mutants: per module, the mutants
+run count as they are and the module's unrun ones are expected to be killed at the rate of
+its sampled ones (stratified estimate, binomial variance with the finite-population
+correction), with a 95 % interval.
+
 Run from the repository root after ``mutmut run``: ``python docs/results/mutation/summarise.py``.
 """
 
@@ -66,7 +72,31 @@ def _reason(reasons: dict, name: str, change: str) -> str:
     return next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), "unexplained")
 
 
-def summarise(reasons: dict) -> dict:
+def estimate(status: dict[str, dict[str, str]], sample: dict) -> dict:
+    """Stratified estimate of the killed ratio over every mutant (module docstring), from the
+    per-module ``status`` and ``sample`` (``sample.json``)."""
+    killed = var = total = 0.0
+    for module, per in status.items():
+        total += len(per)
+        killed += sum(s in KILLED for s in per.values())
+        left = sum(s in NOT_RUN for s in per.values())
+        drawn = [
+            per[n] for n in sample.get("sample", {}).get(module, []) if per.get(n) not in NOT_RUN | {None}
+        ]
+        if not left:
+            continue
+        if not drawn:
+            return {"killed_ratio": None, "why": f"{module}: {left} mutants not run and none of them sampled"}
+        rate, pop = sum(s in KILLED for s in drawn) / len(drawn), sample["population"][module]
+        killed += left * rate
+        var += left**2 * rate * (1 - rate) / len(drawn) * max(0.0, 1 - len(drawn) / pop)
+    half = 1.96 * var**0.5 / total
+    ratio = killed / total
+    return {"killed_ratio": round(ratio, 4), "ci95": [round(ratio - half, 4), round(ratio + half, 4)],
+            "seed": sample.get("seed"), "fraction": sample.get("fraction")}  # fmt: skip
+
+
+def summarise(reasons: dict, sample: dict | None = None) -> dict:
     """The results document (see the module docstring)."""
     status, _ = _status_and_diffs(set())
     surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
@@ -88,6 +118,7 @@ def summarise(reasons: dict) -> dict:
         "run_fraction": round(run / max(1, sum(total.values())), 4),
         "modules_complete": [m for m, v in modules.items() if v["not_run"] == 0],
         "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
+        **({"estimate": estimate(status, sample)} if sample else {}),
         "modules": modules, "survivors": survivors,
     }  # fmt: skip
 
@@ -107,7 +138,9 @@ def report(res: dict) -> str:
         "",
         "One operator, constant, name or argument of the code changed at a time (a *mutant*, made by",
         "[mutmut](https://github.com/boxed/mutmut) 3); the unit tests that reach the changed",
-        "function run against it (`make mutate`; the configuration is `[tool.mutmut]` in",
+        "function run against it (`make mutate`: all mutants, hours on 2 cores; `make mutate-sample`:",
+        "a seeded random tenth of the GP and model mutants, about an hour; the configuration is",
+        "`[tool.mutmut]` in",
         "`pyproject.toml`: `estimator_service/filters`, `gp`, `models` and `service/limits.py`;",
         "tests marked `slow` are left out; `raise` statements keep their message text). A mutant",
         "is *killed* when a test fails or it times out; one that no test reaches counts as surviving.",
@@ -116,6 +149,7 @@ def report(res: dict) -> str:
         f"{res['timeout']} timed out, {res['survived']} survived, {res['no_tests']} reached by no test);",
         f"{res['not_run']} of the {res['total']} mutants not run (run fraction {res['run_fraction']:.3f});",
         f"survivors explained: {res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
+        *_estimate_lines(res.get("estimate")),
         "",
         "| module | mutants | not run | killed ratio (of those run) | survived | no test |",
         "|---|---|---|---|---|---|",
@@ -132,24 +166,43 @@ def report(res: dict) -> str:
     return "\n".join([*head, *rows, *tail]) + "\n"
 
 
+def _estimate_lines(est: dict | None) -> list[str]:
+    if not est:
+        return []
+    if est["killed_ratio"] is None:
+        return ["", f"No estimate over all mutants: {est['why']}."]
+    lo, hi = est["ci95"]
+    return [
+        "",
+        f"**Estimated killed ratio over all the configured mutants: {est['killed_ratio']:.3f}**",
+        f"(95 % interval {lo:.3f}-{hi:.3f}): the mutants not run were sampled at random, a fraction",
+        f"{est['fraction']} of each module's (seed {est['seed']}, `sample.py`), and each module's rest",
+        "is expected to be killed at its sample's rate (a stratified estimate; random mutant",
+        "sampling: Wong & Mathur 1995, Zhang et al. 2013).",
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=HERE, help="folder for results.json and report.md")
     ap.add_argument(
         "--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons: {mutant: reason}"
     )
+    ap.add_argument("--sample", type=Path, default=HERE / "sample.json", help="sample.py's record, if any")
     args = ap.parse_args(argv)
     if not Path("mutants").is_dir():
         print("no mutants/ folder here: run `make mutate` from the repository root", file=sys.stderr)
         return 2
     reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
-    res = summarise(reasons)
+    sample = json.loads(args.sample.read_text()) if args.sample.exists() else None
+    res = summarise(reasons, sample)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))
     keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "not_run", "total", "run_fraction",
             "survivors_unexplained")  # fmt: skip
-    print(json.dumps({k: res[k] for k in keys}))
+    est = {"estimated_killed_ratio": res["estimate"]["killed_ratio"]} if "estimate" in res else {}
+    print(json.dumps({**{k: res[k] for k in keys}, **est}))
     return 0
 
 
