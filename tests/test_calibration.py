@@ -419,15 +419,16 @@ def test_settings_tracked_side_by_side_equal_each_tracked_alone() -> None:
         scaled.predict(np.zeros((2, n)), np.zeros((2, 3)))
 
 
-def test_calibration_details_with_numpy_values_round_trip(tmp_path: Path) -> None:
+def test_calibration_details_with_numpy_values_round_trip_and_merge(tmp_path: Path) -> None:
     """What training measured (numpy arrays and scalars) is written as plain JSON numbers and
     read back unchanged."""
     from estimator_service.models.calibration import read_details, write_noise_scales
 
     details = {"scales": np.array([1.5, 2.0]), "share": np.float32(0.25), "folds": np.int64(3)}
     write_noise_scales(tmp_path, {"gp": 2.0}, sizes=details)
-    back = read_details(tmp_path)["sizes"]
-    assert back == {"scales": [1.5, 2.0], "share": 0.25, "folds": 3}
+    write_noise_scales(tmp_path, {"egp": 3.0}, other={"n": np.int64(2)})  # merged, not replaced
+    back = read_details(tmp_path)
+    assert back == {"sizes": {"scales": [1.5, 2.0], "share": 0.25, "folds": 3}, "other": {"n": 2}}
 
 
 def test_the_process_ceiling_round_trips_and_refuses_bad_values(tmp_path: Path) -> None:
@@ -453,3 +454,12 @@ def test_the_process_ceiling_round_trips_and_refuses_bad_values(tmp_path: Path) 
         path.write_text(json.dumps({PROCESS_CEILING: bad}))
         with pytest.raises(ValueError, match=PROCESS_CEILING):
             read_process_ceiling(tmp_path, 3)
+
+
+def test_a_bad_nis_reference_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    from estimator_service.models.calibration import CALIBRATION_FILE, write_noise_scales
+
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="nis_reference"):
+            write_noise_scales(tmp_path, {"gp": 2.0}, nis_reference={"gp": bad})
+        assert not (tmp_path / CALIBRATION_FILE).exists()

@@ -341,13 +341,14 @@ def test_training_reports_progress_per_output_through_callback(toy) -> None:
     seen = []
     fit_exact(x[:30], y[:30, 0], restarts=1, max_iter=5, callback=seen.append)
     assert seen and seen[0].iteration == 1 and np.isfinite(seen[-1].objective)
+    assert [s.iteration for s in seen if s.restart == 0][:3] == [1, 2, 3]  # counted per restart
     assert seen[-1].model == "exact"
     seen.clear()
     fit_sparse(x[:30], y[:30], n_pseudo=5, max_iter=3, callback=seen.append)
     assert {s.output for s in seen} == {0, 1} and {s.model for s in seen} == {"sparse"}
 
 
-def test_a_fit_draws_from_the_generator_it_is_given(toy) -> None:
+def test_exact_and_heteroscedastic_fits_draw_from_the_generator_they_are_given(toy) -> None:
     """Restarts and the hyperparameter subset come from ``rng``: the generator advances, and
     the same seed gives the same fit."""
     x, y = toy
@@ -377,7 +378,7 @@ def test_save_load_round_trips_exactly(models, kind: str, tmp_path: Path) -> Non
     assert not list(tmp_path.glob("*.tmp"))
 
 
-def test_malformed_model_files_are_rejected(models, tmp_path: Path) -> None:
+def test_malformed_model_files_are_rejected_naming_the_file_and_field(models, tmp_path: Path) -> None:
     good = save_gp(models["exact"], tmp_path / "good.npz")
     raw = good.read_bytes()
     truncated = tmp_path / "truncated.npz"
@@ -390,11 +391,13 @@ def test_malformed_model_files_are_rejected(models, tmp_path: Path) -> None:
         "alpha": {**arrays, "alpha": arrays["alpha"][:, :-1]},
         "chol_t": {k: v for k, v in arrays.items() if k != "chol_t"},
         "kind": {**arrays, "__kind__": np.array("mystery")},
+        "x_std": {k: v for k, v in arrays.items() if k != "x_std"},
+        "y_mean": {**arrays, "y_mean": np.array(["a", "b"])},
     }
     for needle, content in cases.items():
         path = tmp_path / f"bad_{needle}.npz"
         np.savez(path, **content)
-        with pytest.raises(ModelFileError, match=needle):
+        with pytest.raises(ModelFileError, match=rf"bad_{needle}\.npz.*{needle}"):  # the file, then the field
             load_gp(path)
     egp = save_gp(models["enhanced"], tmp_path / "egp.npz")
     with pytest.raises(ModelFileError, match="mean_function"):
@@ -565,17 +568,17 @@ def test_an_enhanced_gps_variance_includes_the_noise_by_default() -> None:
 
 
 def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:
-    """A singular kernel (repeated inputs, no noise): jitter starts at 1e-10 of the mean
-    diagonal and grows tenfold per failure, so the one added is at most 1e-10 x 10^7 of it and
-    the factor reproduces ``K + jitter I``; a zero diagonal is refused."""
+    """A kernel with a tiny negative eigenvalue: jitter starts at 1e-10 of the mean
+    diagonal and grows tenfold per failure, so the first that works (1e-7) is added and the
+    factor reproduces ``K + jitter I``; a zero diagonal is refused."""
     from estimator_service.gp.linalg import NotPositiveDefiniteError, robust_cholesky
 
-    x = np.repeat(np.linspace(0, 1, 4), 2)[:, None]
-    k = 2.0 * np.exp(-0.5 * (x - x.T) ** 2)
+    q, _ = np.linalg.qr(np.random.default_rng(4).normal(size=(3, 3)))
+    k = q @ np.diag([2.0, 1.0, -5e-8]) @ q.T  # mean diagonal 1; needs jitter above 5e-8
+    k = 0.5 * (k + k.T)
     l, jitter = robust_cholesky(k)
-    steps = math.log10(jitter / (2.0 * 1e-10))  # mean diagonal 2
-    assert abs(steps - round(steps)) < 1e-9 and 0 <= round(steps) <= 7
-    np.testing.assert_allclose(l @ l.T, k + jitter * np.eye(8), atol=1e-12)
+    assert jitter == pytest.approx(1e-10 * np.mean(np.diag(k)) * 1e3, rel=1e-12)  # the fourth try
+    np.testing.assert_allclose(l @ l.T, k + jitter * np.eye(3), atol=1e-12)
     with pytest.raises(NotPositiveDefiniteError):
         robust_cholesky(np.zeros((3, 3)))
 

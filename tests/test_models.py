@@ -390,6 +390,33 @@ def test_gp_model_wrappers_pass_the_gps_variances_through_by_default() -> None:
     np.testing.assert_allclose(pred.predict(x, u, jac=True).jac, want.jac[:, :, :2], rtol=1e-12)
     scaled = NoiseScaledPrediction(pred, np.array([2.0, 3.0]))
     np.testing.assert_allclose(scaled.predict(x, u).var, want.var * [2.0, 3.0], rtol=1e-12)
+    with pytest.raises(ValueError):
+        NoiseScaledPrediction(pred, np.ones((1, 1, 2)))  # one scale per output, or per row and output
     obs = GPObservationModel(gp)
     np.testing.assert_allclose(obs.observe(np.c_[x, u]).var, want.var, rtol=1e-12)
     assert not obs.observe(np.c_[x, u], var=False).var.any()
+
+
+def test_the_odes_dynamics_are_newton_euler_for_a_rigid_body() -> None:
+    """With drag, lift, righting moment and controls switched off, momentum obeys
+    ``M v' = -w x (M v)`` and ``J w' = -w x (J w)`` (``numpy.cross``), for distinct masses;
+    thrust alone accelerates along ``(cos mu, 0, sin mu)`` and pitches by the fan's arm."""
+    rng = np.random.default_rng(11)
+    th = np.zeros(16)
+    th[[0, 1, 2, 3]] = [0.6, 0.9, 0.02, 0.1]  # m2, m3, j1, j_lat
+    fixed, dt = (0.44, 0.8), 1e-7
+    x = np.c_[np.zeros((5, 3)), rng.uniform(-0.4, 0.4, (5, 3)), rng.uniform(-0.5, 0.5, (5, 6))]
+    rate = (integrate(x, np.zeros((5, 3)), th, fixed, dt, 1) - x) / dt
+    m, j = np.array([0.44, 0.6, 0.9]), np.array([0.02, 0.1, 0.1])
+    v, w = x[:, 6:9], x[:, 9:12]
+    np.testing.assert_allclose(m * rate[:, 6:9], -np.cross(w, m * v), atol=1e-6)
+    np.testing.assert_allclose(j * rate[:, 9:12], -np.cross(w, j * w), atol=1e-6)
+    th[[12, 13, 15]] = [0.15, 1.5, 0.4]  # k_thrust, k_angle, fan_arm
+    u = np.array([[0.8, 0.3, 0.0]])
+    rest = np.zeros((1, 12))
+    rate = (integrate(rest, u, th, fixed, dt, 1) - rest) / dt
+    thrust, mu = 0.15 * 0.8, 1.5 * 0.3
+    np.testing.assert_allclose(
+        rate[0, 6:9], [thrust * np.cos(mu) / 0.44, 0.0, thrust * np.sin(mu) / 0.9], atol=1e-6
+    )
+    np.testing.assert_allclose(rate[0, 9:12], [0.0, -0.4 * thrust * np.cos(mu) / 0.1, 0.0], atol=1e-6)
