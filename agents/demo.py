@@ -28,9 +28,10 @@ from matplotlib.patches import Ellipse
 import gpbf_env
 from agents.pilots import WaypointPilot, make_pilot
 from agents.sim import collect_flight, env_frames
+from estimator_service.angles import wrap_angle
 from estimator_service.blimp import blimp_system
 from estimator_service.flight import save_flight
-from estimator_service.plots import save_figure
+from estimator_service.plots import continuous, save_figure
 from estimator_service.progress import ProgressBar
 from estimator_service.service.client import EstimatorClient, free_port, open_session, services, spawn_service
 from estimator_service.tracking import group_rms
@@ -76,25 +77,15 @@ def plot_camera_views(state: np.ndarray, path: Path, seed: int = 0) -> None:
         frame = render_frame(cam, state[:3], rot[0], cfg.semi_axes, rng)
         ax.imshow(frame, cmap="gray", vmin=0, vmax=255)
         fitted = fit_ellipse_image(cam, frame)
-        for ell, color, label in (
-            (closed[0, k], "red", "closed form"),
-            (fitted, "cyan", "image fit"),
-        ):
-            if ell is None or (color == "red" and not visible[0, k]):
+        for ell, style in (  # the fit wide underneath, the closed form dashed on top
+            (fitted, {"color": "cyan", "lw": 3.0, "label": "image fit", "zorder": 2}),
+            (closed[0, k] if visible[0, k] else None,
+             {"color": "red", "lw": 1.2, "ls": "--", "label": "closed form", "zorder": 3}),
+        ):  # fmt: skip
+            if ell is None:
                 continue
             cx, cy, w, h, ang = ell
-            ax.add_patch(
-                Ellipse(
-                    (cx, cy),
-                    w,
-                    h,
-                    angle=np.degrees(ang),
-                    fill=False,
-                    color=color,
-                    lw=1.5,
-                    label=label,
-                )
-            )
+            ax.add_patch(Ellipse((cx, cy), w, h, angle=np.degrees(ang), fill=False, **style))
         ax.set_title(f"{cam.name}: 640x480, barrel distortion")
         ax.legend(loc="lower right", fontsize=8)
         ax.set_axis_off()
@@ -108,8 +99,8 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     p, g = log["state"][:, :3], log["goal"]
     fig = plt.figure(figsize=(12, 5))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
-    ax3.plot(*p.T, lw=1.2)
-    ax3.scatter(*np.unique(g[:, :3], axis=0).T, color="green", marker="x", s=60)
+    ax3.plot(*p.T, lw=1.2, label="blimp")
+    ax3.scatter(*np.unique(g[:, :3], axis=0).T, color="green", marker="x", s=60, label="waypoints")
     ax3.set(
         xlim=(0, cfg.room[0]),
         ylim=(0, cfg.room[1]),
@@ -122,8 +113,8 @@ def plot_trajectory(log: dict[str, np.ndarray], path: Path) -> None:
     ax = fig.add_subplot(1, 2, 2)
     ax.plot(p[:, 0], p[:, 1], lw=1.2, label="blimp")
     ax.scatter(*np.unique(g[:, :2], axis=0).T, color="green", marker="x", s=60, label="waypoints")
-    for cam in cfg.cameras:
-        ax.plot(*cam.position[:2], "ks")
+    for j, cam in enumerate(cfg.cameras):
+        ax.plot(*cam.position[:2], "ks", label="cameras" if j == 0 else "_nolegend_")
         ax.annotate(cam.name, cam.position[:2])
     ax.set(xlim=(0, cfg.room[0]), ylim=(0, cfg.room[1]), xlabel="x (m)", ylabel="y (m)", aspect="equal")
     ax.set_title("top-down")
@@ -173,20 +164,29 @@ def fly_through_service(
 
 
 def plot_service_tracking(log: dict[str, np.ndarray], kinds: tuple[str, ...], path: Path) -> None:
+    save_figure(service_tracking_figure(log, kinds), path)
+
+
+def service_tracking_figure(log: dict[str, np.ndarray], kinds: tuple[str, ...]) -> plt.Figure:
+    """x, y and yaw of the truth and each kind's belief with its 3-sigma band; the yaw drawn
+    without its wrap at +-pi, each belief beside the truth by its wrapped error."""
     t = np.arange(len(log["truth"])) * float(log["dt"])
+    periods = blimp_system().state_periods
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     for ax, (i, label) in zip(axes, ((0, "x (m)"), (1, "y (m)"), (5, "yaw (rad)")), strict=True):
-        ax.plot(t, log["truth"][:, i], "k", lw=1.2, label="truth")
+        truth = continuous(log["truth"][:, i], periods[i])
+        ax.plot(t, truth, "k", lw=1.2, label="truth")
         for k, color in zip(kinds, ("tab:red", "tab:blue"), strict=False):
-            m, sd = log[k][:, i], np.sqrt(log[f"{k}_var"][:, i])
+            m = truth + wrap_angle(log[k][:, i] - log["truth"][:, i], periods[i])
+            sd = np.sqrt(log[f"{k}_var"][:, i])
             ax.plot(t, m, color=color, lw=0.9, ls="--", label=f"UKF / {k}")
-            ax.fill_between(t, m - 3 * sd, m + 3 * sd, color=color, alpha=0.15, lw=0)
+            ax.fill_between(t, m - 3 * sd, m + 3 * sd, color=color, alpha=0.15, lw=0, label=f"3 sigma / {k}")
         ax.set_ylabel(label)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=3)
+        ax.legend(loc="upper right", fontsize=8, ncol=3)
     axes[-1].set_xlabel("time (s)")
     fig.suptitle("beliefs from the zenoh estimator service (lock-step), 3-sigma bands")
     fig.tight_layout()
-    save_figure(fig, path)
+    return fig
 
 
 def main(argv: list[str] | None = None) -> int:

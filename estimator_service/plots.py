@@ -7,14 +7,25 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
+from estimator_service.blimp import blimp_system
 from estimator_service.files import atomic_write
 from estimator_service.tracking import GROUPS, TrackResult
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["normalised_path", "plot_normalised", "plot_tracking", "save_figure"]
+FloatArray = NDArray[np.float64]
+
+__all__ = [
+    "continuous",
+    "normalised_path",
+    "plot_normalised",
+    "plot_tracking",
+    "save_figure",
+    "tracking_figure",
+]
 
 #: the blimp's panels: position, yaw and two velocities
 BLIMP_PANELS = (
@@ -44,11 +55,24 @@ def save_figure(fig: Figure, path: Path, dpi: int = 110) -> Path:
     return atomic_write(path, lambda fh: fh.write(buf.getvalue()))
 
 
+def continuous(values: FloatArray, period: float) -> FloatArray:
+    """A time series ``(T,)`` of an angle of period ``period`` without its jumps at the wrap
+    (:func:`numpy.unwrap`), to draw as one line; a series with period 0 as it is."""
+    return np.unwrap(values, period=period) if period > 0 else values
+
+
 def plot_tracking(r: TrackResult, path: Path, dt: float | None = None, title: str = "") -> Path:
+    """:func:`tracking_figure` written to ``path`` (PNG, atomically)."""
+    return save_figure(tracking_figure(r, dt, title), path)
+
+
+def tracking_figure(r: TrackResult, dt: float | None = None, title: str = "") -> Figure:
     """Estimate vs truth with 3-sigma bands (the blimp: position, yaw and two velocities;
-    another system: its first six state components)."""
+    another system: its first six state components); angles drawn without their wrap, the
+    estimate and its band beside the truth by the wrapped error."""
     plt = _pyplot()
     system = r.system
+    periods = (system or blimp_system()).state_periods
     if dt is None:
         dt = system.dt if system is not None else 0.25
     if system is None or system.name == "blimp":
@@ -61,16 +85,17 @@ def plot_tracking(r: TrackResult, path: Path, dt: float | None = None, title: st
     )
     for ax, (i, label) in zip(axes[:, 0], panels, strict=True):
         sd = np.sqrt(r.cov[:, i, i])
-        est = r.truth[:, i] + r.error[:, i]  # unwrapped next to the truth
+        truth = continuous(r.truth[:, i], periods[i])
+        est = truth + r.error[:, i]  # the wrapped error, next to the truth
         ax.fill_between(t, est - 3 * sd, est + 3 * sd, color="tab:blue", alpha=0.25, lw=0, label="3 sigma")
-        ax.plot(t, r.truth[:, i], "k", lw=1.0, label="truth")
+        ax.plot(t, truth, "k", lw=1.0, label="truth")
         ax.plot(t, est, "r--", lw=1.0, label="estimate")
         ax.set_ylabel(label)
     axes[0, 0].legend(loc="upper right", fontsize=8, ncol=3)
     axes[-1, 0].set_xlabel("time (s)")
     fig.suptitle(title)
     fig.tight_layout()
-    return save_figure(fig, path)
+    return fig
 
 
 def normalised_path(path: Path) -> Path:
