@@ -145,6 +145,9 @@ def fly_through_service(
         action = pilot.act(info["state"])
         obs, _, terminated, _, info = env.step(action)
         if terminated:
+            bar.stop(
+                f"the blimp crashed (left the room, or touched the floor or ceiling) at t = {info['t']:.1f} s"
+            )
             break
         frames = env_frames(obs)
         for k, c in clients.items():

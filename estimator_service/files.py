@@ -56,7 +56,8 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], objec
     """Call ``write(fh)`` on a temporary file beside ``path``, then rename it to ``path``.
 
     The parent folder is created when missing. On any exception the temporary file is
-    removed and the destination is left as it was.
+    removed and the destination is left as it was; an operating-system error (a full disk,
+    a folder where the file should go) is raised naming ``path``, never the temporary file.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -70,6 +71,11 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[BinaryIO], objec
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        if e.errno is None:
+            raise
+        raise type(e)(e.errno, e.strerror, os.fspath(path)) from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

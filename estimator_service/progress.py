@@ -68,6 +68,16 @@ class ProgressBar:
             text += f" [{self._postfix}]"
         print(text, file=self._stream, flush=True)
 
+    def stop(self, reason: str) -> None:
+        """End the job early at the units done, saying why (the display stays below 100 %)."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        if self._enabled:
+            done = f"{self.n}/{self.total}" if self.total else str(self.n)
+            print(f"{self.desc}: stopped at {done} {self.unit}s: {reason}", file=self._stream, flush=True)
+        self._enabled = False
+
     def close(self, *, final_line: bool = True) -> None:
         if self._bar is not None:
             self._bar.close()

@@ -143,6 +143,19 @@ def test_progress_is_one_display_with_periodic_plain_lines_off_a_terminal() -> N
     assert len(lines) == 1 and lines[0].startswith("train: 1000/1000 steps (100%)") and "ETA" in lines[0]
 
 
+def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
+    import io
+
+    from estimator_service.progress import ProgressBar
+
+    out = io.StringIO()
+    with ProgressBar("fly", 480, stream=out, every_s=3600) as bar:
+        for _ in range(195):
+            bar.advance()
+        bar.stop("the blimp crashed at t = 48.8 s")
+    assert out.getvalue().splitlines() == ["fly: stopped at 195/480 steps: the blimp crashed at t = 48.8 s"]
+
+
 def test_a_model_kind_the_folder_lacks_is_named_with_the_kinds_it_has(capsys, tmp_path: Path) -> None:
     """``serve``/``track`` with a kind the folder was not trained for: one line naming the
     kinds the folder holds (was: the missing file's path)."""

@@ -106,6 +106,27 @@ def test_written_files_follow_the_umask_and_failed_writes_leave_nothing(tmp_path
     assert remove_stale_temps(tmp_path) == 1
 
 
+def test_a_failed_write_names_the_destination_not_the_temporary_file(tmp_path: Path) -> None:
+    """The operating system's error for a folder where the file should go (or a full disk)
+    names the path the user gave, keeps its type and errno, and leaves no temporary file."""
+    import errno
+
+    from estimator_service.files import atomic_write
+
+    (tmp_path / "out").mkdir()
+    with pytest.raises(IsADirectoryError) as err:
+        atomic_write_text(tmp_path / "out", "x")
+    assert err.value.filename == str(tmp_path / "out") and ".gpbf-" not in str(err.value)
+
+    def full(fh):
+        raise OSError(errno.ENOSPC, "No space left on device", fh.name)
+
+    with pytest.raises(OSError, match=r"No space left on device: '.*b\.bin'") as err:
+        atomic_write(tmp_path / "b.bin", full)
+    assert err.value.errno == errno.ENOSPC and ".gpbf-" not in str(err.value)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["out"]
+
+
 def test_model_folder_is_replaced_whole_or_not_at_all(tmp_path: Path) -> None:
     system = blimp_system(1)
     out = tmp_path / "models"
