@@ -320,12 +320,12 @@ def test_camera_rotation_and_ellipses_agree_with_the_simulators_own_geometry() -
     per cent (the model is that approximation; a wrong axis or scale is off many fold)."""
     import dataclasses
 
-    from estimator_service.models.camera import _rotation
+    from estimator_service.models.rotation import euler_matrix
     from gpbf_env.camera import default_cameras, euler_to_matrix, outline_ellipses
 
     rng = np.random.default_rng(8)
     euler = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), rng.uniform(-math.pi, math.pi, 20)]
-    np.testing.assert_allclose(_rotation(euler), euler_to_matrix(euler), atol=1e-15)
+    np.testing.assert_allclose(euler_matrix(euler), euler_to_matrix(euler), atol=1e-15)
     sim = tuple(dataclasses.replace(c, k1=0.0, k2=0.0) for c in default_cameras((10.0, 6.0, 4.0)))
     cams = tuple(PinholeCalibration(c.position, c.rotation, c.focal, c.principal_point) for c in sim)
     x = np.zeros((20, 12))

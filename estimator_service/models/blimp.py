@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 
 from estimator_service.angles import wrap_angle
 from estimator_service.models.base import ModelOutput, controls_for
+from estimator_service.models.rotation import euler_rows
 from estimator_service.reprs import short_repr
 
 __all__ = ["PARAM_NAMES", "BlimpODE", "fit_blimp_ode"]
@@ -46,12 +47,9 @@ def _derivative(s: FloatArray, u: FloatArray, th: FloatArray, fixed: tuple[float
     m2, m3, j1, j_lat, d1, d2, d3, e1, e2, e3, lift, right, k_t, k_mu, k_tl, l_f = th
     m1, l_t = fixed
     v1, v2, v3, p, q, r = s[6], s[7], s[8], s[9], s[10], s[11]
-    (sf, st, sp), (cf, ct, cp) = np.sin(s[3:6]), np.cos(s[3:6])  # one call each: tiny arrays
-    rot = (
-        (cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf),
-        (sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf),
-        (-st, ct * sf, ct * cf),
-    )
+    sin, cos = np.sin(s[3:6]), np.cos(s[3:6])  # one call each: tiny arrays
+    rot = euler_rows(sin, cos)
+    (sf, st, _), (cf, ct, _) = sin, cos
     thrust, mu, tail = k_t * u[0], k_mu * u[1], k_tl * u[2]
     fx, fz = thrust * np.cos(mu), thrust * np.sin(mu)
     force = (

@@ -20,6 +20,7 @@ from scipy.optimize import least_squares
 
 from estimator_service.angles import wrap_angle
 from estimator_service.models.base import ModelOutput
+from estimator_service.models.rotation import euler_matrix
 from estimator_service.reprs import short_repr
 
 __all__ = ["CameraModel", "PinholeCalibration", "ellipse_from_shape", "fit_camera_model"]
@@ -63,22 +64,11 @@ def ellipse_from_shape(centre: FloatArray, shape: FloatArray) -> FloatArray:
     return np.stack([centre[..., 0], centre[..., 1], w, h, angle], axis=-1)
 
 
-def _rotation(euler: FloatArray) -> FloatArray:
-    sf, st, sp = np.sin(euler).T
-    cf, ct, cp = np.cos(euler).T
-    rows = (
-        cp * ct, cp * st * sf - sp * cf, cp * st * cf + sp * sf,
-        sp * ct, sp * st * sf + cp * cf, sp * st * cf - cp * sf,
-        -st, ct * sf, ct * cf,
-    )  # fmt: skip
-    return np.stack(rows, axis=-1).reshape(-1, 3, 3)
-
-
 def project_ellipses(
     cams: tuple[PinholeCalibration, ...], x: FloatArray, semi_axes: FloatArray
 ) -> FloatArray:
     """Ellipses ``(M, 5 C)`` of states ``x (M, >= 6)`` for envelope semi-axes ``(a, b)``."""
-    pos, rot = x[:, :3], _rotation(x[:, 3:6])
+    pos, rot = x[:, :3], euler_matrix(x[:, 3:6])
     scales = np.array([semi_axes[0], semi_axes[1], semi_axes[1]])
     tips = rot * scales[None, None, :]  # columns: body axes in the world, scaled
     out = []
