@@ -463,3 +463,28 @@ def test_a_bad_nis_reference_is_refused_before_anything_is_written(tmp_path: Pat
         with pytest.raises(ValueError, match="nis_reference"):
             write_noise_scales(tmp_path, {"gp": 2.0}, nis_reference={"gp": bad})
         assert not (tmp_path / CALIBRATION_FILE).exists()
+
+
+def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format(tmp_path: Path) -> None:
+    """Each reader's error for values of the wrong kind says which file, which section and
+    what it expects; a nested list of observation scales reads as the flat list."""
+    from estimator_service.models.calibration import (
+        CALIBRATION_FILE,
+        NIS_REFERENCE,
+        read_nis_reference,
+        read_observation_scales,
+        read_process_scales,
+    )
+
+    path = tmp_path / CALIBRATION_FILE
+    for key, read, want in (
+        ("process_noise_scale", read_process_scales, "{kind: [numbers]}"),
+        ("observation_noise_scale", read_observation_scales, "{kind: [numbers]}"),
+        (NIS_REFERENCE, read_nis_reference, "{kind: number}"),
+    ):
+        path.write_text(json.dumps({key: {"gp": ["a", "b"]}}))
+        with pytest.raises(ValueError) as err:
+            read(tmp_path)
+        assert CALIBRATION_FILE in str(err.value) and f"{{'{key}': {want}}}" in str(err.value)
+    path.write_text(json.dumps({"observation_noise_scale": {"gp": [[1.0, 2.0], [3.0, 4.0]]}}))
+    np.testing.assert_array_equal(read_observation_scales(tmp_path)["gp"], [1.0, 2.0, 3.0, 4.0])

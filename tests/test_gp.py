@@ -602,3 +602,23 @@ def test_a_batch_larger_than_the_memory_chunk_predicts_what_one_block_does(model
     for a, b in ((parts.mean, whole.mean), (parts.var, whole.var), (parts.jac, whole.jac)):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
     assert gp.predict(q, return_var=False).var is None
+
+
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_the_heteroscedastic_fit_runs_as_many_noise_rounds_as_asked(toy, iterations: int) -> None:
+    """Each round refits the mean GP's hyperparameters under the new noise profile once per
+    output: as many fresh ``hetero`` optimisations (iteration 1) as rounds."""
+    x, y = toy
+    seen = []
+    fit_hetero(x[:40], y[:40, 0], iterations=iterations, restarts=1, max_iter=3, callback=seen.append)
+    assert sum(s.model == "hetero" and s.iteration == 1 for s in seen) == iterations
+
+
+def test_a_constant_column_is_centred_but_not_scaled() -> None:
+    """A column whose spread is below 1e-12 of its magnitude keeps the unit scale (dividing
+    by its rounding noise would blow it up); the others get their standard deviation."""
+    v = np.c_[np.full(20, 3.0), np.full(20, 1e6) + 1e-9 * np.arange(20), np.arange(20.0)]
+    sc = Scaler.fit(v)
+    np.testing.assert_array_equal(sc.std[:2], [1.0, 1.0])
+    np.testing.assert_allclose(sc.mean, v.mean(axis=0))
+    assert sc.std[2] == pytest.approx(np.std(np.arange(20.0)))

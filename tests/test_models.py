@@ -313,7 +313,7 @@ def test_camera_fit_checks_each_shape_and_measures_the_noise_of_the_frames_seen(
     assert fit.noise_var.shape == (10,)
 
 
-def test_camera_rotation_and_ellipses_agree_with_the_simulators_own_geometry() -> None:
+def test_the_camera_rotation_and_ellipses_agree_with_the_simulators_own_geometry() -> None:
     """Against the simulator's independent code (``gpbf_env.camera``, undistorted): the
     body-to-world rotation equals ``Rz(psi) Ry(theta) Rx(phi)`` exactly, and the projected
     principal axes give the closed-form rim ellipse's centre, size and orientation to a few
@@ -343,7 +343,7 @@ def test_camera_rotation_and_ellipses_agree_with_the_simulators_own_geometry() -
     assert np.all(np.abs(turn[~round_]) < 0.02)  # 0.003 rad measured
 
 
-def test_the_odes_kinematics_are_the_rigid_body_rates() -> None:
+def test_the_odes_kinematics_are_rigid_body_rates() -> None:
     """Whatever the forces, position changes at ``R(euler) v`` (body velocities turned into the
     world by the simulator's own ``Rz Ry Rx``) and the Euler angles at the ZYX rates
     ``phi' = p + (q sin phi + r cos phi) tan theta``, ``theta' = q cos phi - r sin phi``,
@@ -397,7 +397,7 @@ def test_gp_model_wrappers_pass_the_gps_variances_through_by_default() -> None:
     assert not obs.observe(np.c_[x, u], var=False).var.any()
 
 
-def test_the_odes_dynamics_are_newton_euler_for_a_rigid_body() -> None:
+def test_the_odes_dynamics_are_newton_euler() -> None:
     """With drag, lift, righting moment and controls switched off, momentum obeys
     ``M v' = -w x (M v)`` and ``J w' = -w x (J w)`` (``numpy.cross``), for distinct masses;
     thrust alone accelerates along ``(cos mu, 0, sin mu)`` and pitches by the fan's arm."""
@@ -420,3 +420,41 @@ def test_the_odes_dynamics_are_newton_euler_for_a_rigid_body() -> None:
         rate[0, 6:9], [thrust * np.cos(mu) / 0.44, 0.0, thrust * np.sin(mu) / 0.9], atol=1e-6
     )
     np.testing.assert_allclose(rate[0, 9:12], [0.0, -0.4 * thrust * np.cos(mu) / 0.1, 0.0], atol=1e-6)
+
+
+def test_the_odes_forces_and_moments_are_the_documented_ones() -> None:
+    """Every force and moment of the module's description, computed here independently
+    (the world vertical in body axes from the simulator's rotation, moments by
+    ``numpy.cross``): linear drag, net lift along world z, fan thrust along
+    ``(cos mu, 0, sin mu)`` at the fan's arm, the tail's side force at the tail's arm, the
+    righting moment ``righting (e_z x g)`` and rotational drag, in ``M v' = F - w x Mv`` and
+    ``J w' = T - w x Jw`` (one RK4 step of 1e-7 s)."""
+    from gpbf_env.camera import euler_to_matrix
+
+    rng = np.random.default_rng(12)
+    th = DEFAULT_PARAMS.copy()
+    th[10] = -0.03  # net lift: slightly heavy
+    m1, l_t = 0.44, 0.8
+    x = np.c_[
+        np.zeros((6, 3)),
+        rng.uniform(-0.5, 0.5, (6, 2)),
+        rng.uniform(-3, 3, 6),
+        rng.uniform(-0.5, 0.5, (6, 6)),
+    ]
+    u = rng.uniform(-1, 1, (6, 3))
+    rate = (integrate(x, u, th, (m1, l_t), 1e-7, 1) - x) / 1e-7
+    m2, m3, j1, j_lat, d1, d2, d3, e1, e2, e3, lift, right, k_t, k_mu, k_tl, l_f = th
+    m, j = np.array([m1, m2, m3]), np.array([j1, j_lat, j_lat])
+    v, w = x[:, 6:9], x[:, 9:12]
+    g = euler_to_matrix(x[:, 3:6])[:, 2, :]  # world z in body axes
+    thrust, mu, tail = k_t * u[:, 0], k_mu * u[:, 1], k_tl * u[:, 2]
+    fan = np.c_[thrust * np.cos(mu), np.zeros(6), thrust * np.sin(mu)]
+    force = fan + np.c_[np.zeros(6), tail, np.zeros(6)] - [d1, d2, d3] * v + lift * g
+    moment = (
+        right * np.cross([0.0, 0.0, 1.0], g)
+        + np.cross([0.0, 0.0, -l_f], fan)  # the fan at fan_arm below the centre (body z up)
+        + np.cross([-l_t, 0.0, 0.0], np.c_[np.zeros(6), tail, np.zeros(6)])  # the tail behind it
+        - [e1, e2, e3] * w
+    )
+    np.testing.assert_allclose(m * rate[:, 6:9], force - np.cross(w, m * v), atol=1e-6)
+    np.testing.assert_allclose(j * rate[:, 9:12], moment - np.cross(w, j * w), atol=1e-6)
