@@ -581,6 +581,8 @@ def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:
     np.testing.assert_allclose(l @ l.T, k + jitter * np.eye(3), atol=1e-12)
     with pytest.raises(NotPositiveDefiniteError):
         robust_cholesky(np.zeros((3, 3)))
+    with pytest.raises(NotPositiveDefiniteError):  # needs more than the last try's 1e-3
+        robust_cholesky(q @ np.diag([2.0, 1.0, -5e-3]) @ q.T)
 
 
 def test_a_hyperparameter_subset_draws_distinct_points() -> None:
@@ -622,3 +624,12 @@ def test_a_constant_column_is_centred_but_not_scaled() -> None:
     np.testing.assert_array_equal(sc.std[:2], [1.0, 1.0])
     np.testing.assert_allclose(sc.mean, v.mean(axis=0))
     assert sc.std[2] == pytest.approx(np.std(np.arange(20.0)))
+
+
+def test_the_polish_on_all_points_reports_its_progress(toy) -> None:
+    """With a hyperparameter subset, each output's search on the subset and its polish on all
+    points both report: two optimisations starting at iteration 1."""
+    x, y = toy
+    seen = []
+    fit_exact(x, y[:, 0], restarts=1, max_iter=3, hyper_points=30, polish_iter=3, callback=seen.append)
+    assert sum(s.iteration == 1 for s in seen) == 2

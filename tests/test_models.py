@@ -458,3 +458,13 @@ def test_the_odes_forces_and_moments_are_the_documented_ones() -> None:
     )
     np.testing.assert_allclose(m * rate[:, 6:9], force - np.cross(w, m * v), atol=1e-6)
     np.testing.assert_allclose(j * rate[:, 9:12], moment - np.cross(w, j * w), atol=1e-6)
+
+
+def test_ode_fit_at_another_step_from_a_given_start(flight) -> None:
+    """One-step data at dt = 0.5 s are fitted by a model stepping 0.5 s (not the default
+    0.25 s), starting from the guess given."""
+    x, u = flight["x"][:150], flight["u"][:150]
+    xn = integrate(x, u, flight["true"], (0.44, 0.8), 0.5, 2)
+    fit = fit_blimp_ode(x, u, xn, dt=0.5, initial=flight["true"] * 1.05)
+    assert fit.dt == 0.5
+    np.testing.assert_allclose(fit.params, flight["true"], rtol=1e-3, atol=1e-6)
