@@ -18,7 +18,7 @@ import numpy as np
 
 from estimator_service.files import atomic_savez
 from estimator_service.models.blimp import BlimpODE, fit_blimp_ode
-from estimator_service.models.camera import CameraModel, PinholeCalibration, fit_camera_model
+from estimator_service.models.camera import ELLIPSE_PERIODS, CameraModel, PinholeCalibration, fit_camera_model
 from estimator_service.system import Group, Sensor, System
 
 if TYPE_CHECKING:
@@ -58,8 +58,7 @@ def blimp_system(n_cameras: int = 2, dt: float = 0.25, camera_rate_hz: float | N
     rad/s), 3 controls, ``n_cameras`` cameras each reporting an ellipse ``(cx, cy, w, h,
     angle)`` whose orientation has period pi. GPs see the yaw as ``(cos, sin)``."""
     cams = tuple(
-        Sensor(f"cam{k}", ELLIPSE_OUTPUTS, (0.0, 0.0, 0.0, 0.0, math.pi), camera_rate_hz)
-        for k in range(n_cameras)
+        Sensor(f"cam{k}", ELLIPSE_OUTPUTS, ELLIPSE_PERIODS, camera_rate_hz) for k in range(n_cameras)
     )
     periods = (0.0,) * 3 + (2 * math.pi,) * 3 + (0.0,) * 6
     return System(

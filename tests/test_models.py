@@ -304,7 +304,7 @@ def test_camera_fit_checks_each_shape_and_measures_the_noise_of_the_frames_seen(
         with pytest.raises(ValueError, match="need x"):
             fit_camera_model(CAMS, *bad)
     fit = fit_camera_model(CAMS, x, z, valid)
-    periods = np.tile([0.0, 0.0, 0.0, 0.0, math.pi], 2)
+    periods = fit.obs_periods
     r = wrap_angle(project_ellipses(CAMS, x, fit.semi_axes) - z, periods)
     seen = np.repeat(valid, 5, axis=1)
     want = np.where(seen, r * r, 0.0).sum(axis=0) / seen.sum(axis=0) + 1e-9

@@ -23,9 +23,12 @@ from estimator_service.models.base import ModelOutput
 from estimator_service.models.rotation import euler_matrix
 from estimator_service.reprs import short_repr
 
-__all__ = ["CameraModel", "PinholeCalibration", "ellipse_from_shape", "fit_camera_model"]
+__all__ = ["ELLIPSE_PERIODS", "CameraModel", "PinholeCalibration", "ellipse_from_shape", "fit_camera_model"]
 
 FloatArray = NDArray[np.float64]
+
+#: periods of an ellipse reading (cx, cy, width, height, orientation): the orientation has period pi
+ELLIPSE_PERIODS = (0.0, 0.0, 0.0, 0.0, math.pi)
 
 
 @dataclass(frozen=True)
@@ -108,7 +111,7 @@ class CameraModel:
     @property
     def obs_periods(self) -> FloatArray:
         """Period of each observation value: pi for ellipse angles, else 0."""
-        return np.tile([0.0, 0.0, 0.0, 0.0, math.pi], len(self.cameras))
+        return np.tile(ELLIPSE_PERIODS, len(self.cameras))
 
     def mean(self, x: FloatArray) -> FloatArray:
         return project_ellipses(self.cameras, x, self.semi_axes)
@@ -141,7 +144,7 @@ def fit_camera_model(
         raise ValueError(f"need x (N, 12), z (N, {5 * len(cameras)}), valid (N, {len(cameras)})")
     if not mask.any():
         raise ValueError("no valid camera frames to fit the camera model to")
-    periods = np.tile([0.0, 0.0, 0.0, 0.0, math.pi], len(cameras))
+    periods = np.tile(ELLIPSE_PERIODS, len(cameras))
 
     def resid(ab: FloatArray) -> FloatArray:
         r = project_ellipses(cameras, x, np.exp(ab)) - z
