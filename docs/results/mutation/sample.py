@@ -26,6 +26,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # summarise.py, beside this script: the one list of mutmut's statuses
+from summarise import NOT_RUN  # noqa: E402
+
 SAMPLE = HERE / "sample.json"
 FULL = ("estimator_service/filters/*", "estimator_service/service/limits.py")
 
@@ -36,14 +39,12 @@ def unrun_by_module() -> dict[str, list[str]]:
     from mutmut.stats import status_by_exit_code
     from mutmut.utils.file_utils import walk_mutatable_files
 
-    not_run = {"not checked", "skipped", "check was interrupted by user"}
-
     out: dict[str, list[str]] = {}
     for path in walk_mutatable_files():
         data = SourceFileMutationData(path=path)
         data.load()
         out[str(path)] = sorted(
-            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in not_run
+            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in NOT_RUN
         )
     return out
 
