@@ -35,7 +35,7 @@ from estimator_service.plots import continuous, save_figure
 from estimator_service.progress import ProgressBar
 from estimator_service.service.client import EstimatorClient, free_port, open_session, services, spawn_service
 from estimator_service.tracking import group_rms
-from estimator_service.training import TrainSettings, train_models
+from estimator_service.training import TrainSettings, progress_units, train_models
 from gpbf_env.camera import euler_to_matrix, outline_ellipses
 from gpbf_env.imaging import fit_ellipse_image, render_frame
 
@@ -212,13 +212,13 @@ def main(argv: list[str] | None = None) -> int:
     save_flight(flight, args.out / "training_flight.npz")
     models = args.out / "models"
     kinds = ("param", "egp")
-    bar = ProgressBar("train models", len(kinds) - 1, unit="kind")
+    settings = TrainSettings(n_points=args.points, n_pseudo=30, restarts=1, max_iter=40)
+    bar = ProgressBar("train models", progress_units([flight], kinds, settings), unit="part")
 
     def progress(kind: str, p) -> None:
         if p is None:
             bar.advance(postfix=f"{kind} done")
 
-    settings = TrainSettings(n_points=args.points, n_pseudo=30, restarts=1, max_iter=40)
     with bar:
         train_models([flight], models, kinds=kinds, settings=settings, seed=args.seed, on_progress=progress)
     # 3. the estimator as a separate process, fed through the bridge

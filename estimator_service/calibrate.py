@@ -16,7 +16,7 @@ from the flight's :class:`~estimator_service.system.System`.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -171,8 +171,10 @@ def calibrate_noise(
 
 
 def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, rounds: int = MATCH_ROUNDS,
-           max_step: float = MATCH_STEP, covering: bool = True) -> dict[str, NoiseCalibration]:  # fmt: skip
-    """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`."""
+           max_step: float = MATCH_STEP, covering: bool = True,
+           on_kind: Callable[[str], None] | None = None) -> dict[str, NoiseCalibration]:  # fmt: skip
+    """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`;
+    ``on_kind(kind)`` after each kind."""
     from estimator_service.factory import apply_calibration, load_models
 
     res = {}
@@ -183,6 +185,8 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
         scales = read_observation_scales(folder).get(kind)
         block = Block(flight, rows, pred, cam, read_process_ceiling(folder, pred.state_dim))
         res[kind] = noise_from_blocks([block], start, scales, rounds, max_step, covering)
+        if on_kind is not None:
+            on_kind(kind)
     write_calibration(
         folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
         {k: v.details for k, v in res.items()}, {k: v.nis_level for k, v in res.items()},
@@ -233,12 +237,14 @@ def write_calibration(
 
 
 def calibrate_all(
-    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice, covering: bool = True
-) -> dict[str, NoiseCalibration]:
+    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice, covering: bool = True,
+    on_kind: Callable[[str], None] | None = None,
+) -> dict[str, NoiseCalibration]:  # fmt: skip
     """Observation scales, one-step process scales, then their per-output match to the EKF's
     errors and (with ``covering``) the 3-sigma coverage factor, all on ``rows`` of
     ``flight`` (which the models in ``folder`` must not have seen); written to
-    ``folder/calibration.json`` and returned per kind."""
+    ``folder/calibration.json`` and returned per kind. ``on_kind(kind)`` as each kind is
+    done."""
     calibrate_observation(flight, folder, kinds, rows=rows)
     calibrate_process(flight, folder, kinds, rows=rows)
-    return _noise(flight, folder, kinds, rows, covering=covering)
+    return _noise(flight, folder, kinds, rows, covering=covering, on_kind=on_kind)

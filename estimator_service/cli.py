@@ -88,7 +88,7 @@ def add_log_options(p: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from estimator_service.training import TrainSettings, available_kinds, train_models
+    from estimator_service.training import TrainSettings, available_kinds, progress_units, train_models
 
     flights = [_read_log(p, args) for p in args.logs]
     settings = TrainSettings(
@@ -100,11 +100,12 @@ def run_train(args: argparse.Namespace) -> int:
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
     if "param" in avail and "param" not in kinds:
         kinds.insert(0, "param")
-    bar = ProgressBar("train", len(kinds), unit="kind", enabled=not args.quiet)
+    total = progress_units(flights, kinds, settings)
+    bar = ProgressBar("train", total, unit="part", enabled=not args.quiet)
     iterations = {"n": 0}
 
     def progress(kind: str, p) -> None:
-        if p is None:
+        if p is None:  # one part of the work (a fit, a fold's calibration of a kind, a choice) done
             bar.advance(1, postfix=f"{kind} done")
             return
         iterations["n"] += 1

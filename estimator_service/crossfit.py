@@ -90,11 +90,12 @@ def calibration_folds(flights: Sequence[Flight], seconds: float, folds: int) -> 
 
 def cross_fit(
     out: Path, flights: Sequence[Flight], system: System, kinds: Sequence[str], folds: Sequence[Fold],
-    fit: Callable[[Path, list[Flight]], object],
+    fit: Callable[[Path, list[Flight]], object], tick: Callable[[str], None] | None = None,
 ) -> dict[str, FloatArray]:  # fmt: skip
     """Calibrate the models in ``out`` from folds: ``fit(folder, flights)`` trains the kinds
     into ``folder``; returns the process-noise scales per kind ``(n,)`` (ones where the
-    calibration is not applied).
+    calibration is not applied). ``tick(label)`` is called as each fold's calibration of a
+    kind, and each kind's final choice, is done.
 
     Each fold's models are fitted without its rows, which then calibrate them
     (:func:`~estimator_service.calibrate.calibrate_all`: observation scales and process
@@ -126,7 +127,9 @@ def cross_fit(
         try:
             fit(fold, f.rest(flights))
             seal(fold, system)
-            res = calibrate_all(flights[f.flight], fold, kinds, rows=f.rows, covering=False)
+            label = f"calibration fold {i + 1}/{len(folds)}"
+            done = None if tick is None else lambda k, label=label: tick(f"{label}: {k}")
+            res = calibrate_all(flights[f.flight], fold, kinds, rows=f.rows, covering=False, on_kind=done)
             details.append(read_details(fold))
             for k, r in res.items():
                 matched[k].append(r.matched)
@@ -150,6 +153,8 @@ def cross_fit(
         adaptive[k], scores = adaptation_helps(blocks[k], Setting(process[k], observation[k]), plain)
         chosen[k] = {"likelihood": {**choice.details(), "adaptive": scores.as_dict()}}
         levels[k] = plain.nis_level
+        if tick is not None:
+            tick(f"calibration: {k}'s noise chosen")
     write_calibration(out, process, observation, chosen, levels, adaptive=adaptive, fold_details=details,
                       folds=[[f.flight, f.rows.start, f.rows.stop] for f in folds])  # fmt: skip
     return process

@@ -63,7 +63,14 @@ from estimator_service.user_models import (
 #: per kind and model part, each output's claimed noise std beside its floor (see _claimed_std)
 NOISE_FILE = "noise.json"
 
-__all__ = ["NOISE_FILE", "TrainSettings", "available_kinds", "prediction_data", "train_models"]
+__all__ = [
+    "NOISE_FILE",
+    "TrainSettings",
+    "available_kinds",
+    "prediction_data",
+    "progress_units",
+    "train_models",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -142,6 +149,21 @@ def available_kinds(system: System) -> tuple[str, ...]:
     return tuple(k for k in MODEL_KINDS if k != "param" and k not in ENHANCED_KINDS)
 
 
+def progress_units(
+    flights: Sequence[Flight], kinds: Sequence[str] | None = None, settings: TrainSettings = TrainSettings()
+) -> int:
+    """The units of work :func:`train_models` reports as done (``on_progress(label, None)``)
+    for these arguments: one per GP kind fitted; with noise calibration, per fold one per
+    kind calibrated (and with ``calibration_refit`` one per GP kind refitted), then one per
+    kind whose noise is chosen. A progress display's total."""
+    kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds or ()
+    gp = sum(k != "param" for k in kinds)
+    folds = len(calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds))
+    if not folds:
+        return gp
+    return gp + folds * (len(kinds) + (gp if settings.calibration_refit else 0)) + len(kinds)
+
+
 def _check_flights(flights: Sequence[Flight], kinds: Sequence[str]) -> System:
     if not flights:
         raise ValueError("no flights to train on")
@@ -193,7 +215,9 @@ def train_models(
     :func:`available_kinds`); returns training seconds per kind.
 
     ``exclude(inputs) -> mask`` drops prediction training rows (e.g. tail pushing left,
-    paper Fig. 4). ``on_progress(label, progress)`` reports optimiser iterations.
+    paper Fig. 4). ``on_progress(label, progress)`` reports optimiser iterations, and with
+    ``progress`` None that the unit of work ``label`` is done (:func:`progress_units` of
+    them: the fits, then each fold's calibration, then each kind's noise choice).
     Randomness: the training subsets come from one stream of ``seed`` and each kind's
     optimiser from its own, so a kind's models do not depend on which other kinds are
     trained beside it. ``out_dir`` is replaced whole when training succeeds and left as it
@@ -216,9 +240,13 @@ def _train_into(out: Path, flights, system: System, kinds, settings: TrainSettin
 
         def fit(folder: Path, fold_flights: list[Flight]) -> None:
             reuse = None if settings.calibration_refit else out
-            _fit_models(folder, fold_flights, system, kinds, settings, seed, None, exclude, reuse=reuse)
+            report = None  # conditioned on the fold's data only: too quick to count
+            if settings.calibration_refit and on_progress is not None:
+                report = lambda kind, p: on_progress(f"calibration: {kind} refitted", p)  # noqa: E731
+            _fit_models(folder, fold_flights, system, kinds, settings, seed, report, exclude, reuse=reuse)
 
-        cross_fit(out, flights, system, kinds, folds, fit)
+        tick = None if on_progress is None else lambda label: on_progress(label, None)
+        cross_fit(out, flights, system, kinds, folds, fit, tick=tick)
         timings["calibration"] = time.perf_counter() - t0
     return timings
 

@@ -36,7 +36,8 @@ EXPECTED = {
     },
     "bench_training.py": {
         "exact_nll_ms_default_threads", "exact_nll_ms_one_thread", "potri_speedup",
-        "subset_fit_speedup", "subset_to_full_rms_ratio",
+        "subset_fit_speedup", "subset_to_full_rms_ratio", "exact_nll_ratio_to_flop_limit",
+        "train_default_s", "calibration_share",
     },
     "bench_gp.py": {
         "batch_mean_var_s", "achieved_gflops", "matmul_gflops", "speedup_vs_sklearn",
@@ -46,7 +47,13 @@ EXPECTED = {
 
 
 #: scripts whose --quick run is over a minute have a --smoke mode for this test
-SMOKE = {"bench_agents.py", "bench_consistency.py", "bench_filters.py", "bench_service.py"}
+SMOKE = {
+    "bench_agents.py",
+    "bench_consistency.py",
+    "bench_filters.py",
+    "bench_service.py",
+    "bench_training.py",
+}
 
 
 @pytest.mark.parametrize("script", sorted(EXPECTED))

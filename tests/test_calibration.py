@@ -32,7 +32,7 @@ from estimator_service.models.calibration import (
     write_noise_scales,
 )
 from estimator_service.store import seal
-from estimator_service.training import TrainSettings, train_models
+from estimator_service.training import TrainSettings, progress_units, train_models
 
 
 def test_scaled_model_scales_only_the_variance() -> None:
@@ -488,3 +488,24 @@ def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format
         assert CALIBRATION_FILE in str(err.value) and f"{{'{key}': {want}}}" in str(err.value)
     path.write_text(json.dumps({"observation_noise_scale": {"gp": [[1.0, 2.0], [3.0, 4.0]]}}))
     np.testing.assert_array_equal(read_observation_scales(tmp_path)["gp"], [1.0, 2.0, 3.0, 4.0])
+
+
+@pytest.mark.parametrize("refit", [False, True])
+def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> None:
+    """Progress counts the fits, every fold's calibration of every kind (and with refitting
+    the folds' fits) and each kind's noise choice: the units reported as done are exactly
+    ``progress_units``, in that order, so a display reaches 100 % when training returns and
+    not before the calibration has run."""
+    flight = collect_flight(60, seed=8)
+    s = TrainSettings(n_points=30, restarts=1, max_iter=2, calibration_seconds=10, calibration_folds=2,
+                      calibration_refit=refit)  # fmt: skip
+    done: list[str] = []
+    train_models([flight], tmp_path, kinds=["param", "gp"], settings=s,
+                 on_progress=lambda label, p: done.append(label) if p is None else None)  # fmt: skip
+    fits = ["gp"]
+    folds = [f"calibration fold {i}/2: {k}" for i in (1, 2) for k in ("param", "gp")]
+    if refit:
+        folds = [item for i in (1, 2) for item in ("calibration: gp refitted", *folds[2 * i - 2 : 2 * i])]
+    assert done == [*fits, *folds, "calibration: param's noise chosen", "calibration: gp's noise chosen"]
+    assert progress_units([flight], ["param", "gp"], s) == len(done)
+    assert progress_units([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0)) == 1
