@@ -1,10 +1,13 @@
 """One progress display per long job: a bar with a total and an ETA in a terminal, plain
 periodic lines (``desc: 120/480 steps (25%), 3 s elapsed, ETA 9 s``) when the output is a
-file or a pipe, nothing with ``enabled=False``."""
+file or a pipe, nothing with ``enabled=False``. The plain lines keep coming every
+``every_s`` seconds while a long unit of work reports nothing (a background timer), so a log
+never falls silent for minutes."""
 
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from typing import TextIO
 
@@ -17,7 +20,8 @@ class ProgressBar:
     Parameters
     ----------
     every_s
-        Seconds between two plain lines when the stream is not a terminal.
+        Seconds between two plain lines when the stream is not a terminal (also while no
+        progress is reported).
     """
 
     def __init__(
@@ -30,10 +34,20 @@ class ProgressBar:
         self._t0 = self._last = time.monotonic()
         self._postfix = ""
         self._bar = None
+        self._lock, self._done = threading.Lock(), threading.Event()
         if enabled and getattr(self._stream, "isatty", lambda: False)():
             from tqdm import tqdm
 
             self._bar = tqdm(total=total, desc=desc, unit=unit, file=self._stream, dynamic_ncols=True)
+        elif enabled:
+            threading.Thread(target=self._heartbeat, name=f"progress {desc}", daemon=True).start()
+
+    def _heartbeat(self) -> None:
+        """A plain line whenever ``every_s`` passed without one, until the job ends."""
+        while not self._done.wait(self._every / 4):
+            with self._lock:
+                if self._enabled and time.monotonic() - self._last >= self._every:
+                    self._line()
 
     def update_to(self, n: int, total: int | None = None, postfix: str = "") -> None:
         """Set the units done (and the total, and a short status text)."""
@@ -48,7 +62,8 @@ class ProgressBar:
                 self._bar.set_postfix_str(postfix, refresh=False)
             self._bar.update(delta)
         elif self._enabled and time.monotonic() - self._last >= self._every:
-            self._line()
+            with self._lock:
+                self._line()
 
     def advance(self, k: int = 1, postfix: str = "") -> None:
         self.update_to(self.n + k, postfix=postfix)
@@ -73,17 +88,21 @@ class ProgressBar:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-        if self._enabled:
-            done = f"{self.n}/{self.total}" if self.total else str(self.n)
-            print(f"{self.desc}: stopped at {done} {self.unit}s: {reason}", file=self._stream, flush=True)
-        self._enabled = False
+        with self._lock:
+            if self._enabled:
+                done = f"{self.n}/{self.total}" if self.total else str(self.n)
+                print(f"{self.desc}: stopped at {done} {self.unit}s: {reason}", file=self._stream, flush=True)
+            self._enabled = False
+        self._done.set()
 
     def close(self, *, final_line: bool = True) -> None:
         if self._bar is not None:
             self._bar.close()
-        elif self._enabled and final_line:
-            self._line()
-        self._enabled = False
+        with self._lock:
+            if self._bar is None and self._enabled and final_line:
+                self._line()
+            self._enabled = False
+        self._done.set()
 
     def __enter__(self) -> ProgressBar:
         return self

@@ -143,6 +143,24 @@ def test_progress_is_one_display_with_periodic_plain_lines_off_a_terminal() -> N
     assert len(lines) == 1 and lines[0].startswith("train: 1000/1000 steps (100%)") and "ETA" in lines[0]
 
 
+def test_plain_progress_keeps_printing_while_a_unit_of_work_reports_nothing() -> None:
+    """Off a terminal a line comes every ``every_s`` even when no progress is reported (a
+    long calibration), and none after the job ends."""
+    import io
+    import time
+
+    from estimator_service.progress import ProgressBar
+
+    out = io.StringIO()
+    with ProgressBar("train", 10, unit="part", stream=out, every_s=0.05) as bar:
+        bar.advance()
+        time.sleep(0.5)
+    silent = out.getvalue().splitlines()
+    assert len(silent) >= 4 and all(line.startswith("train: 1/10 parts") for line in silent[:-1])
+    time.sleep(0.2)
+    assert out.getvalue().splitlines() == silent
+
+
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
     import io
 
