@@ -80,8 +80,12 @@ def _train_agent(args: argparse.Namespace) -> int:
         progress_bar=not args.quiet,
         hyperparams=args.hyperparams,
         tensorboard=args.tensorboard,
+        eval_episodes=args.curve_episodes,
+        checkpoint_freq=args.checkpoint_freq,
+        resume=args.resume,
+        command=["gpbf", *sys.argv[1:]],
     )
-    print(f"wrote {path} and {args.out / 'learning_curve.png'}")
+    print(f"wrote {path}, {args.out / 'learning_curve.png'} and {args.out / 'run.json'}")
     print(json_text({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
     return 0
 
@@ -237,6 +241,18 @@ def _add_train_agent(sub) -> None:
         "--tensorboard", type=Path, default=None, help="write SB3's TensorBoard logs to this folder"
     )
     a.add_argument("--eval-freq", type=checked_int(1, 10**9), default=5000, help="steps between evaluations")
+    a.add_argument(
+        "--curve-episodes", type=checked_int(1, 10_000), default=3,
+        help="episodes of each periodic evaluation (the learning curve; the RL experiment uses 8)",
+    )  # fmt: skip
+    a.add_argument(
+        "--checkpoint-freq", type=checked_int(1, 10**9), default=None,
+        help="steps between checkpoints (default: 5 x --eval-freq); the newest keeps its replay buffer",
+    )  # fmt: skip
+    a.add_argument(
+        "--resume", action="store_true",
+        help="continue the run in --out from its newest checkpoint to --timesteps in all",
+    )  # fmt: skip
     a.add_argument(
         "--eval-episodes", type=checked_int(1, 10_000), default=5, help="episodes of the final evaluation"
     )

@@ -487,3 +487,33 @@ def test_normalize_is_read_applied_saved_and_used_when_the_agent_acts(tmp_path: 
     assert returns[0]["mean_return"] == pytest.approx(first["mean_return"])
     assert returns[1]["mean_return"] != pytest.approx(first["mean_return"])  # what the agent sees matters
     assert observation_normalizer(tmp_path)(obs) is obs  # an agent trained without it
+
+
+def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models: str, tmp_path) -> None:
+    """``run.json`` holds the command line, settings and versions; checkpoints keep only the
+    newest replay buffer; ``resume`` continues from the newest checkpoint (model, replay
+    buffer, learning curve) to the total budget."""
+    import json
+
+    from agents.rl.training import latest_checkpoint
+
+    spec = AgentSpec(algo="sac", variant="belief", models=models, seed=2)
+    out = tmp_path / "agent"
+    with pytest.raises(FileNotFoundError, match="no checkpoint in"):
+        train_agent(spec, 256, out, resume=True, progress_bar=False)
+    train_agent(spec, 256, out, eval_freq=64, eval_episodes=1, checkpoint_freq=64, progress_bar=False,
+                command=["gpbf", "train-agent", "--algo", "sac"])  # fmt: skip
+    run = json.loads((out / "run.json").read_text())
+    assert run["command"][:2] == ["gpbf", "train-agent"] and run["checkpoint_freq"] == 64
+    assert run["resumed_from_steps"] is None and {"torch", "stable_baselines3"} <= set(run["versions"])
+    assert latest_checkpoint(out)[1] == 256
+    buffers = [f.name for f in (out / "checkpoints").glob("*replay_buffer*")]
+    assert buffers == ["agent_replay_buffer_256_steps.pkl"]
+    before = np.load(out / "evaluations.npz")["timesteps"].tolist()
+    train_agent(spec, 384, out, eval_freq=64, eval_episodes=1, checkpoint_freq=64, progress_bar=False,
+                resume=True)  # fmt: skip
+    agent, _ = load_agent(out)
+    assert agent.num_timesteps == 384
+    assert json.loads((out / "run.json").read_text())["resumed_from_steps"] == 256
+    after = np.load(out / "evaluations.npz")["timesteps"].tolist()
+    assert before == [64, 128, 192, 256] and after == [*before, 320, 384]

@@ -12,8 +12,12 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable
+import platform
+import re
+import sys
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +40,7 @@ __all__ = [
     "agent_folder",
     "evaluate_agent",
     "evaluate_pilot",
+    "latest_checkpoint",
     "load_agent",
     "make_vec",
     "observation_normalizer",
@@ -45,6 +50,9 @@ __all__ = [
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ppo": PPO, "sac": SAC}
 NORMALIZER_FILE = "vecnormalize.pkl"  # SB3's VecNormalize statistics, rl-zoo3's file name
 CHECKPOINTS = "checkpoints"  # the folder of periodic snapshots inside an agent's folder
+RUN_FILE = "run.json"  # how an agent was trained: command line, settings, package versions
+_CHECKPOINT = re.compile(r"agent_(\d+)_steps\.zip")  # SB3 CheckpointCallback's model file names
+_VERSIONED = ("gpbf", "numpy", "scipy", "torch", "stable_baselines3", "gymnasium")
 
 
 @dataclass(frozen=True)
@@ -127,6 +135,40 @@ def _algo(
     )
 
 
+class _Checkpoints(CheckpointCallback):
+    """SB3's checkpoints with the replay buffer and normaliser statistics of the newest one
+    only (a replay buffer is up to hundreds of MB; a resumed run needs the last)."""
+
+    def _on_step(self) -> bool:
+        done = super()._on_step()
+        if self.n_calls % self.save_freq == 0:
+            newest = f"_{self.num_timesteps}_steps.pkl"
+            for f in Path(self.save_path).glob("agent_*_steps.pkl"):
+                if not f.name.endswith(newest):
+                    f.unlink(missing_ok=True)
+        return done
+
+
+def latest_checkpoint(folder: str | Path) -> tuple[Path, int] | None:
+    """The newest checkpoint model in an agent folder's ``checkpoints/`` and its steps."""
+    found = [(int(m.group(1)), f) for f in (Path(folder) / CHECKPOINTS).glob("agent_*_steps.zip")
+             if (m := _CHECKPOINT.fullmatch(f.name))]  # fmt: skip
+    if not found:
+        return None
+    steps, path = max(found)
+    return path, steps
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in _VERSIONED:
+        try:
+            out[name] = metadata.version(name.replace("_", "-"))
+        except metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
 def train_agent(
     spec: AgentSpec,
     timesteps: int | None,
@@ -139,6 +181,9 @@ def train_agent(
     small: bool | None = None,
     hyperparams: str | Path | None = None,
     tensorboard: str | Path | None = None,
+    checkpoint_freq: int | None = None,
+    resume: bool = False,
+    command: Sequence[str] | None = None,
 ) -> Path:
     """Train, evaluate periodically, checkpoint, save the model, the spec and a learning curve.
 
@@ -146,7 +191,14 @@ def train_agent(
     (default ``hyperparams/<algo>.yml``); ``timesteps`` and ``n_envs`` default to the
     entry's. ``small`` (default: ``timesteps <= 5000``) uses :data:`SMALL` and one env
     instead, for smoke runs. ``tensorboard`` is a folder for SB3's TensorBoard logs (needs the
-    ``tensorboard`` package).
+    ``tensorboard`` package). Every ``eval_freq`` steps ``eval_episodes`` episodes are
+    evaluated (the learning curve, ``evaluations.npz``); every ``checkpoint_freq`` steps
+    (default ``5 * eval_freq``) a checkpoint is kept in ``checkpoints/``, the newest with
+    its replay buffer and normaliser statistics. With ``resume`` a run continues from the
+    newest checkpoint of ``out_dir`` (its model, replay buffer, statistics and the learning
+    curve up to it) to ``timesteps`` in all; the envs restart their episodes, so a resumed
+    run is not step-for-step the uninterrupted one. ``out_dir/run.json`` records the command
+    line (``command``, default ``sys.argv``), these settings and the package versions.
     """
     params = load_hyperparams(spec.algo, agent_env_id(spec.task, spec.variant), hyperparams)
     timesteps = params.n_timesteps if timesteps is None else timesteps
@@ -159,8 +211,20 @@ def train_agent(
             raise ModuleNotFoundError(
                 "tensorboard logging needs the tensorboard package: pip install tensorboard"
             )
+    checkpoint_freq = 5 * eval_freq if checkpoint_freq is None else checkpoint_freq
+    if not (isinstance(checkpoint_freq, int) and checkpoint_freq >= 1):
+        raise ValueError(f"checkpoint_freq must be a positive integer, got {checkpoint_freq!r}")
     out = Path(out_dir)
+    start = latest_checkpoint(out) if resume else None
+    if resume and start is None:
+        raise FileNotFoundError(f"resume: no checkpoint in {os.fspath(out / CHECKPOINTS)!r} to continue from")
     out.mkdir(parents=True, exist_ok=True)
+    settings = {"timesteps": timesteps, "n_envs": n_envs, "eval_freq": eval_freq,
+                "eval_episodes": eval_episodes, "checkpoint_freq": checkpoint_freq, "small": small,
+                "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
+    run = {"command": list(sys.argv if command is None else command), "spec": asdict(spec), **settings,
+           "resumed_from_steps": None if start is None else start[1], "versions": _versions()}  # fmt: skip
+    atomic_write_text(out / RUN_FILE, json.dumps(run, indent=2))
     venv = make_vec(spec, n_envs)
     eval_env = make_vec(AgentSpec(**{**asdict(spec), "seed": spec.seed + 10_000}), 1)
     if params.normalize is not None:  # the eval env takes the training statistics (EvalCallback)
@@ -169,26 +233,28 @@ def train_agent(
         eval_env = VecNormalize(
             eval_env, training=False, norm_obs=params.normalize["norm_obs"], norm_reward=False
         )
-    agent = _algo(spec, venv, params, small, None if tensorboard is None else str(tensorboard))
-    callbacks = CallbackList(
-        [
-            EvalCallback(
-                eval_env,
-                n_eval_episodes=eval_episodes,
-                eval_freq=max(1, eval_freq // n_envs),
-                log_path=str(out),
-                best_model_save_path=None,
-                deterministic=True,
-                verbose=0,
-            ),
-            CheckpointCallback(
-                save_freq=max(1, 5 * eval_freq // n_envs),
-                save_path=str(out / CHECKPOINTS),
-                name_prefix="agent",
-            ),
-        ]
+    if start is not None:
+        venv, agent = _resumed(spec, venv, start, tensorboard)
+    else:
+        agent = _algo(spec, venv, params, small, None if tensorboard is None else str(tensorboard))
+    evaluate = EvalCallback(
+        eval_env,
+        n_eval_episodes=eval_episodes,
+        eval_freq=max(1, eval_freq // n_envs),
+        log_path=str(out),
+        best_model_save_path=None,
+        deterministic=True,
+        verbose=0,
     )
-    agent.learn(timesteps, callback=callbacks, progress_bar=progress_bar)
+    if start is not None:
+        _keep_curve(evaluate, out, start[1])
+    checkpoints = _Checkpoints(
+        save_freq=max(1, checkpoint_freq // n_envs), save_path=str(out / CHECKPOINTS), name_prefix="agent",
+        save_replay_buffer=True, save_vecnormalize=True,
+    )  # fmt: skip
+    remaining = timesteps if start is None else max(0, timesteps - agent.num_timesteps)
+    agent.learn(remaining, callback=CallbackList([evaluate, checkpoints]), progress_bar=progress_bar,
+                reset_num_timesteps=start is None)  # fmt: skip
     agent.save(out / "model.zip")
     if isinstance(venv, VecNormalize):
         venv.save(out / NORMALIZER_FILE)
@@ -197,6 +263,39 @@ def train_agent(
     venv.close()
     eval_env.close()
     return out / "model.zip"
+
+
+def _resumed(
+    spec: AgentSpec, venv: VecEnv, start: tuple[Path, int], tensorboard: str | Path | None
+) -> tuple[VecEnv, BaseAlgorithm]:
+    """The envs (with the checkpoint's normaliser statistics) and the agent of checkpoint
+    ``start`` (with its replay buffer, for an off-policy agent)."""
+    path, steps = start
+    stats = path.parent / f"agent_vecnormalize_{steps}_steps.pkl"
+    if isinstance(venv, VecNormalize):
+        if not stats.is_file():
+            raise FileNotFoundError(f"resume: checkpoint {os.fspath(path)!r} has no normaliser statistics")
+        venv = VecNormalize.load(str(stats), venv.venv)
+    log = None if tensorboard is None else str(tensorboard)
+    agent = ALGOS[spec.algo].load(path, env=venv, device="cpu", tensorboard_log=log)
+    buffer = path.parent / f"agent_replay_buffer_{steps}_steps.pkl"
+    if hasattr(agent, "load_replay_buffer"):
+        if not buffer.is_file():
+            raise FileNotFoundError(f"resume: checkpoint {os.fspath(path)!r} has no replay buffer beside it")
+        agent.load_replay_buffer(buffer)
+    return venv, agent
+
+
+def _keep_curve(evaluate: EvalCallback, out: Path, steps: int) -> None:
+    """Seed ``evaluate``'s learning curve with the evaluations of ``out`` up to ``steps``."""
+    path = out / "evaluations.npz"
+    if not path.exists():
+        return
+    data = np.load(path)
+    keep = data["timesteps"] <= steps
+    evaluate.evaluations_timesteps = data["timesteps"][keep].tolist()
+    evaluate.evaluations_results = data["results"][keep].tolist()
+    evaluate.evaluations_length = data["ep_lengths"][keep].tolist()
 
 
 def _plot_learning_curve(out: Path) -> None:
