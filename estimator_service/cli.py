@@ -142,12 +142,19 @@ def run_track(args: argparse.Namespace) -> int:
     for name, value in scores.items():
         print(f"{name:>20s}: {value:.4g}")
     if args.plot:
-        from estimator_service.plots import normalised_path, plot_normalised, plot_tracking
+        from estimator_service.plots import (
+            normalised_path,
+            plot_normalised,
+            plot_reliability,
+            plot_tracking,
+            reliability_path,
+        )
 
         title = f"GP-BayesFilter {args.filter.upper()} / {args.model}"
         plot_tracking(result, args.plot, title=title)
         plot_normalised(result, normalised_path(args.plot), title=f"{title}: normalised errors")
-        print(f"wrote {args.plot} and {normalised_path(args.plot)}")
+        plot_reliability({title: result}, reliability_path(args.plot), title=f"{title}: reliability")
+        print(f"wrote {args.plot}, {normalised_path(args.plot)} and {reliability_path(args.plot)}")
     print(json_text({k: round(v, 4) for k, v in scores.items()}))
     return 0
 

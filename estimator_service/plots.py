@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from estimator_service.blimp import blimp_system
 from estimator_service.files import atomic_write
-from estimator_service.tracking import GROUPS, TrackResult
+from estimator_service.tracking import GROUPS, RELIABILITY_LEVELS, TrackResult, reliability
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -22,7 +22,9 @@ __all__ = [
     "continuous",
     "normalised_path",
     "plot_normalised",
+    "plot_reliability",
     "plot_tracking",
+    "reliability_path",
     "save_figure",
     "tracking_figure",
 ]
@@ -132,5 +134,34 @@ def plot_normalised(r: TrackResult, path: Path, dt: float | None = None, title: 
         ax.legend(loc="upper right", fontsize=7, ncol=len(cols))
     axes[-1, 0].set_xlabel("time (s)")
     fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def reliability_path(path: Path) -> Path:
+    """Where :func:`plot_reliability` writes beside a tracking plot ``path``."""
+    return path.with_name(f"{path.stem}_reliability{path.suffix or '.png'}")
+
+
+def plot_reliability(runs: dict[str, TrackResult], path: Path, title: str = "") -> Path:
+    """Reliability diagrams: per state group, the observed against the nominal coverage of the
+    central intervals of each run's beliefs (:func:`~estimator_service.tracking.reliability`),
+    one line per run of ``runs`` (label: run), with the diagonal a calibrated belief follows."""
+    plt = _pyplot()
+    first = next(iter(runs.values()))
+    groups = first.system.groups if first.system is not None else blimp_system().groups
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups) + 0.4, 3.6), squeeze=False)
+    levels = np.asarray(RELIABILITY_LEVELS)
+    for label, r in runs.items():
+        points = reliability(r.error, r.cov, groups)
+        for ax, g in zip(axes[0], groups, strict=True):
+            ax.plot(levels, points[g.name], marker="o", ms=3, lw=1, label=label)
+    for ax, g in zip(axes[0], groups, strict=True):
+        ax.plot([0, 1], [0, 1], "k--", lw=0.8, label="calibrated")
+        ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="nominal coverage", title=g.name.replace("_", " "))
+        ax.set_aspect("equal")
+    axes[0, 0].set_ylabel("observed coverage")
+    axes[0, -1].legend(loc="lower right", fontsize=7)
+    fig.suptitle(title or "reliability: truth inside the belief's central intervals")
     fig.tight_layout()
     return save_figure(fig, path)

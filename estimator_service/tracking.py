@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 from estimator_service.filters import GaussianBelief, StepInfo, make_pd
 from estimator_service.filters.policy import step_many, update_many
@@ -26,12 +26,14 @@ from estimator_service.system import Group, System
 __all__ = [
     "GAUSSIAN_COVERAGE",
     "GROUPS",
+    "RELIABILITY_LEVELS",
     "TrackResult",
     "aggregate_rms",
     "coverage_by_sigma",
     "group_mean_norm",
     "group_rms",
     "mean_sd",
+    "reliability",
     "score",
     "segments",
     "state_error",
@@ -288,6 +290,25 @@ def coverage_by_sigma(error: FloatArray, cov: FloatArray) -> dict[int, FloatArra
     (a calibrated Gaussian belief: :data:`GAUSSIAN_COVERAGE`)."""
     sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
     return {k: np.mean(np.abs(error) <= k * sd, axis=0) for k in GAUSSIAN_COVERAGE}
+
+
+#: nominal central coverages of a reliability diagram (a Gaussian belief's interval mean +- z sd)
+RELIABILITY_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.683, 0.8, 0.9, 0.954, 0.99, 0.997)
+
+
+def reliability(
+    error: FloatArray, cov: FloatArray, groups: Sequence[Group], levels: Sequence[float] = RELIABILITY_LEVELS
+) -> dict[str, FloatArray]:
+    """A reliability diagram's points per state group: ``{group: (L,)}``, for each nominal
+    central coverage ``p`` of ``levels`` the fraction of steps and of the group's dimensions
+    whose error ``(T, n)`` lies within the belief's ``norm.ppf((1 + p) / 2)`` standard
+    deviations (``cov (T, n, n)``). A calibrated Gaussian belief lies on the diagonal;
+    points below it are overconfident, above it too wide."""
+    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+    z = np.abs(error) / np.where(sd > 0, sd, np.inf)  # a zero sd covers nothing but an exact 0
+    k = norm.ppf((1.0 + np.asarray(levels, dtype=float)) / 2.0)  # (L,)
+    inside = z[None] <= k[:, None, None]  # (L, T, n)
+    return {g.name: inside[:, :, list(g.indices)].mean(axis=(1, 2)) for g in groups}
 
 
 def within_3sigma(error: FloatArray, cov: FloatArray) -> float:

@@ -164,6 +164,7 @@ def test_cli_collect_train_track(tmp_path: Path, capsys) -> None:
     assert scores["position_mm"] < 200 and np.isfinite(scores["mll"])
     assert png.stat().st_size > 10_000
     assert png.with_name(f"{png.stem}_normalised.png").stat().st_size > 10_000  # error / sd per group
+    assert png.with_name(f"{png.stem}_reliability.png").stat().st_size > 10_000  # nominal vs observed
     assert gpbf(["track", str(tmp_path / "missing.npz"), "--models", str(m), "--quiet"]) == 2
 
 

@@ -30,3 +30,28 @@ def test_consistency_band_is_the_chi_square_law_not_a_normal_one() -> None:
     assert np.mean(nees < lo) == pytest.approx(0.025, abs=0.002)
     assert np.mean(nees > hi) == pytest.approx(0.025, abs=0.002)
     assert np.isnan(consistency_band(1.0, float("nan"))[0])
+
+
+def test_reliability_is_the_diagonal_for_a_calibrated_belief_and_below_it_when_overconfident() -> None:
+    """Errors drawn from the belief itself cover each nominal central interval as often as it
+    says (within 4 binomial standard errors); errors twice as large fall below the diagonal
+    at every level, by the closed-form amount ``2 Phi(k / 2) - 1``."""
+    from scipy.stats import norm
+
+    from estimator_service.system import Group
+    from estimator_service.tracking import RELIABILITY_LEVELS, reliability
+
+    rng = np.random.default_rng(3)
+    t, sd = 20_000, np.array([0.5, 2.0, 3.0])
+    cov = np.broadcast_to(np.diag(sd**2), (t, 3, 3))
+    err = rng.normal(size=(t, 3)) * sd
+    groups = (Group("a", (0,), 1.0), Group("bc", (1, 2), 1.0))
+    levels = np.array(RELIABILITY_LEVELS)
+    calibrated = reliability(err, cov, groups)
+    for name, count in (("a", t), ("bc", 2 * t)):
+        se = np.sqrt(levels * (1 - levels) / count)
+        assert np.all(np.abs(calibrated[name] - levels) <= 4 * se + 1e-12), name
+    wide = reliability(2 * err, cov, groups)["bc"]
+    expected = 2 * norm.cdf(norm.ppf((1 + levels) / 2) / 2) - 1
+    np.testing.assert_allclose(wide, expected, atol=4 * np.sqrt(0.25 / (2 * t)))
+    assert np.all(wide < levels)

@@ -30,6 +30,7 @@ from estimator_service.events import align, load_event_csv  # noqa: E402
 from estimator_service.factory import build_filter, load_models, make_filter, warm_up  # noqa: E402
 from estimator_service.flight import Flight  # noqa: E402
 from estimator_service.models.calibration import calibration_choices  # noqa: E402
+from estimator_service.plots import plot_reliability  # noqa: E402
 from estimator_service.system import System  # noqa: E402
 from estimator_service.tracking import TrackResult, coverage_by_sigma, track_flight  # noqa: E402
 from estimator_service.training import TrainSettings, train_models  # noqa: E402
@@ -273,7 +274,12 @@ def run(out: Path, quick: bool, reuse: bool = False) -> dict:
     (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
     (out / "report.md").write_text(report(result))
     if not quick:
+        n = len(book_mean)
+        book_run = TrackResult(book_mean, book_cov, test.state[1 : n + 1], np.zeros(n), np.zeros(n, np.int64),
+                               np.zeros(n, bool), 0.0, system)  # fmt: skip
+        runs = {"EGP-EKF": results["egp_ekf"], "hetGP-EKF": results["hetgp_ekf"], "textbook EKF": book_run}
         plot(out, system, test, results["egp_ekf"], book_mean, book_cov, models)
+        plot_reliability(runs, out / "reliability.png", title="Reliability on the held-out part of robot 1")
     return result
 
 
@@ -381,7 +387,9 @@ def report(r: dict) -> str:
         lines += ["", notes.read_text().strip()]
     lines += ["", "Plots: `trajectory.png` (EGP-EKF with 3-sigma bands), `errors.png` (error over time, "
               "EGP-EKF and the textbook EKF), `landmark_residuals.png` (held-out readings minus the fitted "
-              "range-bearing model at the truth, per landmark).", ""]  # fmt: skip
+              "range-bearing model at the truth, per landmark), `reliability.png` (observed against nominal "
+              "coverage of the beliefs' central intervals per state group: EGP-EKF, hetGP-EKF, textbook "
+              "EKF; on the diagonal when calibrated, below it when overconfident).", ""]  # fmt: skip
     return "\n".join(lines)
 
 
