@@ -118,8 +118,9 @@ WHY = (
         "which see the yaw directly, hold its std near their own accuracy.",
     ),
     (
-        "GP-UKF edges out",
-        "In the seed-0 full run GP-UKF and GP-EKF were within 1% of each other on both "
+        "the UKF improves over its Param",
+        "The UKF's and the EKF's improvements differ by a few points either way, within the "
+        "fold-to-fold spread. In the seed-0 full run GP-UKF and GP-EKF were within 1% of each other on both "
         "measures (+0.9% per group, -0.7% on aggregate RMS), well inside the fold-to-fold "
         "spread (about 2.4 aggregate RMS); at seed 1 the UKF was ahead by 1.3% per group. In "
         "the quick run both GP filters are far behind the parametric ones (aggregate RMS 53 "

@@ -317,9 +317,10 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         {k: v.tolist() for k, v in read_observation_scales(f).items()} for f in folders
     ]
     results["wall_s"] = time.perf_counter() - t0
-    from agents.experiments.report import claims, write_report
+    from agents.experiments.report import beyond, claims, write_report
 
     results["claims"] = {key: ok for key, _, ok in claims(results)}
+    results["beyond"] = {key: ok for key, _, ok in beyond(results)}
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
 
     write_report(out, results)
