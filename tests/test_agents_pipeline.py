@@ -196,7 +196,7 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
     )
     res = reproduce(tmp_path, s, progress=False, jobs=2)  # units in worker processes
     report = (tmp_path / "report.md").read_text()
-    for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 3", "Fig. 4", "orderings"):
+    for heading in ("Table 5", "Table 6", "Tables 7-9", "Fig. 3", "Fig. 4", "The paper's results, checked"):
         assert heading in report
     assert set(res["tracking"]) == {f"{f}/{k}" for f in ("ukf", "ekf", "pf") for k in s.kinds}
     assert res["tracking"]["pf/gp"]["steps"] == [20, 0] and res["tracking"]["ekf/gp"]["steps"] == [80, 0]
@@ -208,6 +208,7 @@ def test_reproduce_runs_end_to_end_on_tiny_sizes(tmp_path: Path, monkeypatch: py
     assert len(train.transition_rows()) == len(train) - 1 and len(test) == 40
     assert set(res["claims"]) >= {"table5_gp_beats_param", "table7_ekf_gp_20pct"}
     assert all(isinstance(v, bool) for v in res["claims"].values())
+    assert set(res["beyond"]) <= {"table7_pf_hetgp_best", "table10_ukf_worst_toolbox"}
     for g in ("position_mm", "velocity_mm_s"):  # the paper's mean norm beside RMS, exact-state scores
         assert 0 < res["table5_6"]["gp"][f"norm_{g}"][0] and 0 < res["tracking"]["ekf/gp"][f"exact_{g}"][0]
     assert "Mean error norm" in report and "against the exact state" in report
