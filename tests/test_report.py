@@ -140,3 +140,15 @@ def test_a_regenerated_report_keeps_its_hand_written_notes_once(tmp_path: Path) 
     path.write_text("# Report\n\n| a | 1 |\n\nno marker: generated text only\n")
     write_keeping_notes(path, ["# Report"])
     assert path.read_text() == "# Report\n"
+
+
+def test_a_report_names_its_code_version_command_and_wall_time_in_one_line() -> None:
+    from agents.experiments.provenance import provenance, provenance_line
+
+    p = provenance(90.0, ["/somewhere/.venv/bin/gpbf", "reproduce", "--quick"])
+    assert p["command"] == "gpbf reproduce --quick" and p["wall_s"] == 90.0
+    assert len(str(p["code"]).split("+")[0]) >= 7  # a commit in this checkout
+    assert (
+        provenance_line(p)
+        == f"Provenance: code {p['code']}; command `gpbf reproduce --quick`; wall time 1.5 min."
+    )

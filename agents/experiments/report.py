@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.experiments.measures import aggregate_gain, improvement
+from agents.experiments.provenance import provenance_line
 from agents.experiments.report_notes import write_keeping_notes
 from agents.experiments.report_why import WHY
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
@@ -469,6 +470,7 @@ def write_report(out: Path, res: dict) -> Path:
     lines = [
         "# GP-BayesFilters reproduced on the simulated blimp",
         "",
+        *([provenance_line(res["provenance"]), ""] if "provenance" in res else []),
         f"{s['minutes']:.0f} minutes of scripted flight, {s['folds']}-fold cross-validation over contiguous "
         f"blocks, {s['points']} GP training points, {s['pseudo']} pseudo-inputs, PF with {s['particles']} "
         f"particles (first {s.get('pf_seconds', s['track_seconds']):.0f} s of each segment), tracking "

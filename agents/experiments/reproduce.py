@@ -22,6 +22,7 @@ import numpy as np
 
 from agents.experiments.landmark import table10
 from agents.experiments.parallel import check_jobs, run_all
+from agents.experiments.provenance import provenance
 from agents.experiments.report import FIG3_FILE, FIG4_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
@@ -317,6 +318,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         {k: v.tolist() for k, v in read_observation_scales(f).items()} for f in folders
     ]
     results["wall_s"] = time.perf_counter() - t0
+    results["provenance"] = provenance(results["wall_s"])
     from agents.experiments.report import beyond, claims, write_report
 
     results["claims"] = {key: ok for key, _, ok in claims(results)}
