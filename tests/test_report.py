@@ -152,3 +152,19 @@ def test_a_report_names_its_code_version_command_and_wall_time_in_one_line() -> 
         provenance_line(p)
         == f"Provenance: code {p['code']}; command `gpbf reproduce --quick`; wall time 1.5 min."
     )
+
+
+def test_fig3_checks_robustness_at_every_size_and_sparse_accuracy_with_few_pseudo_inputs() -> None:
+    def run(failed: float, rms: float) -> dict:
+        return {"failed": [failed, 0.0], "aggregate_rms": [rms, 0.0], "mll": [1.0, 0.0]}
+
+    f3 = {"points": {"56": {"ekf": run(0.2, 30.0), "ukf": run(0.1, 25.0)}, "900": {"ekf": run(0.0, 12.0),
+                                                                               "ukf": run(0.0, 12.0)}},
+          "pseudo": {"5": {"ekf": run(0.0, 14.0), "ukf": run(0.0, 13.0)},
+                     "50": {"ekf": run(0.0, 11.0), "ukf": run(0.0, 11.0)}}}  # fmt: skip
+    res = {"tracking": {}, "table5_6": {}, "fig3": f3}
+    keys = ("fig3_ukf_more_robust", "fig3_sparse_few_points")
+    assert {k: ok for k, _, ok in claims(res)} == dict.fromkeys(keys, True)
+    f3["points"]["56"]["ukf"] = run(0.5, 25.0)  # the lab run's smallest size
+    f3["pseudo"]["5"]["ukf"] = run(0.0, 17.0)  # x1.55
+    assert {k: ok for k, _, ok in claims(res)} == dict.fromkeys(keys, False)

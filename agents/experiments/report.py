@@ -222,7 +222,8 @@ def claims(res: dict) -> list[tuple[str, str, bool]]:
         checks += _table6_checks(t5)
     for f in sorted({k.split("/")[0] for k in tr}):
         checks += _filter_checks(tr, f)
-    checks += _ukf_checks(tr) + _table9_checks(tr) + _fig4_checks(res.get("fig4", {}))
+    checks += _ukf_checks(tr) + _table9_checks(tr) + _fig3_checks(res.get("fig3") or {})
+    checks += _fig4_checks(res.get("fig4", {}))
     t10 = res.get("table10", {})
     if "GP-EKF" in t10:
         ukf = t10["GP-UKF (alpha=1)"]["position"]
@@ -307,6 +308,37 @@ def _table9_checks(tr: dict) -> list[tuple[str, str, bool]]:
             r = ms[f"{f}/hetgp"] / ms[f"{f}/gp"]
             text = f"Table 9: {f.upper()}: hetGP about twice GP's step time (1.5-3x; paper 1.6-2.3x): {r:.1f}"
             checks.append((f"table9_{f}_hetgp_about_2x_gp", text, 1.5 <= r <= 3))
+    return checks
+
+
+#: Fig. 3's sparse claim: with the fewest pseudo-inputs, no failed run and an aggregate RMS at
+#: most this factor times the same filter's with the most
+FIG3_SPARSE_RMS_FACTOR = 1.5
+
+
+def _fig3_checks(f3: dict) -> list[tuple[str, str, bool]]:
+    """Fig. 3: GP-UKF at least as robust as GP-EKF (failed runs) at every amount of training
+    data; sparse GP filters accurate even with very few pseudo-inputs."""
+    checks = []
+    points = f3.get("points", {})
+    sizes = [n for n in sorted(points, key=int) if {"ukf", "ekf"} <= set(points[n])]
+    if sizes:
+        worse = [n for n in sizes if points[n]["ukf"]["failed"][0] > points[n]["ekf"]["failed"][0]]
+        more = ", ".join(worse) or "none"
+        text = (f"Fig. 3: GP-UKF fails no more runs than GP-EKF at every number of training points "
+                f"({len(sizes) - len(worse)} of {len(sizes)} sizes; more at {more})")  # fmt: skip
+        checks.append(("fig3_ukf_more_robust", text, not worse))
+    pseudo = f3.get("pseudo", {})
+    if len(pseudo) >= 2:
+        few, most = pseudo[min(pseudo, key=int)], pseudo[max(pseudo, key=int)]
+        ratio = {f: few[f]["aggregate_rms"][0] / most[f]["aggregate_rms"][0] for f in few if f in most}
+        failed = {f: few[f]["failed"][0] for f in few}
+        ok = all(v == 0 for v in failed.values()) and all(r <= FIG3_SPARSE_RMS_FACTOR for r in ratio.values())
+        listed = ", ".join(f"{f.upper()} x{r:.2f}, failed {failed[f]:.2f}" for f, r in ratio.items())
+        n = min(pseudo, key=int)
+        text = (f"Fig. 3: sparse GP filters stay accurate with the fewest pseudo-inputs ({n}): no failed "
+                f"run, aggregate RMS at most x{FIG3_SPARSE_RMS_FACTOR} the most's ({listed})")  # fmt: skip
+        checks.append(("fig3_sparse_few_points", text, ok))
     return checks
 
 
