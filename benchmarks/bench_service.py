@@ -21,6 +21,10 @@ model folder; ``gpbf serve`` runs as a separate process.
    a fleet of two processes on this machine (``fleet_blimps_at_4hz``).
 3. ``overhead_over_zenoh_floor``: the GP-EKF lock-step overhead over the bare zenoh echo
    measured in the same run (target <= 2).
+4. A hostile peer (``service_attacks.py``): forged fleet tokens (``forged_token_sessions_lost``,
+   ``forged_token_resets_ok``), a hung owner (``hung_owner_failover_s``,
+   ``stale_owner_overrides``), near-horizon frame chains against EKF and PF blimps
+   (``near_horizon_healthy_p99_ms``) and the per-blimp queue bound (``queue_bytes_max_mb``).
 
 The last output line is one JSON object.
 """
@@ -40,6 +44,7 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_filters as bf
+import service_attacks
 import service_tools
 from machine import limits
 from service_tools import (
@@ -245,6 +250,13 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         best_sparse = capacity(models, "sparse", levels, seconds)
         best_exact = capacity(models, "gp", [n for n in levels if n <= 100], seconds)
         best_fleet = capacity(models, "sparse", levels, seconds, fleet=2)
+        attacks = {
+            **service_attacks.forged_tokens(models),
+            **service_attacks.frozen_owner(models),
+            **service_attacks.near_horizon(models),
+            "queue_bytes_max_mb": service_attacks.queue_bytes_max_mb(),
+        }
+        print("hostile peer:", attacks)
     out = {
         "rtt_p50_ms": round(res["ekf_rtt_p50_ms"], 3),
         "rtt_p99_ms": round(res["ekf_rtt_p99_ms"], 3),
@@ -267,6 +279,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "echo_blimps_at_4hz": best_echo,
         "blimps_over_echo": round(best_sparse / best_echo, 3) if best_echo else None,
         "overhead_over_zenoh_floor": round(res["ekf_overhead_p50_ms"] / res["ekf_zenoh_floor_ms"], 3),
+        **attacks,
     }
     out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios
     print(json.dumps(out))

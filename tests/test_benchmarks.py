@@ -19,7 +19,8 @@ EXPECTED = {
     },
     "bench_service.py": {
         "rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz", "fleet_blimps_at_4hz",
-        "overhead_over_zenoh_floor",
+        "overhead_over_zenoh_floor", "forged_token_sessions_lost", "forged_token_resets_ok",
+        "hung_owner_failover_s", "stale_owner_overrides", "near_horizon_healthy_p99_ms", "queue_bytes_max_mb",
     },
     "bench_filters.py": {
         "ekf_ms", "ukf_ms", "pf_exact_ms", "pf_sparse_ms",

@@ -224,6 +224,20 @@ def test_a_user_config_is_merged_onto_the_safe_defaults(tmp_path: Path) -> None:
     assert json.loads(cfg.get_json("mode")) == "client"
 
 
+def test_a_service_announces_its_short_lease_unless_the_user_config_sets_one(tmp_path: Path) -> None:
+    """The service's 2 s lease (a hung owner's blimps move after it, not zenoh's 10 s), and
+    the fence at half of it; a configuration file's own lease wins."""
+    from estimator_service.service.config import SERVICE_LEASE_MS
+
+    key = "transport/link/tx/lease"
+    assert json.loads(zenoh_config(lease_ms=SERVICE_LEASE_MS).get_json(key)) == SERVICE_LEASE_MS == 2000
+    assert json.loads(zenoh_config().get_json(key)) == 10_000  # clients keep zenoh's default
+    own = tmp_path / "own.json5"
+    own.write_text("{ transport: { link: { tx: { lease: 5000 } } } }")
+    assert json.loads(zenoh_config(file=own, lease_ms=SERVICE_LEASE_MS).get_json(key)) == 5000
+    assert Limits().fence_after_s == SERVICE_LEASE_MS / 2000
+
+
 def test_protocol_document_matches_the_code() -> None:
     doc = (ROOT / "docs" / "protocol.md").read_text()
     assert f"# Estimator service protocol, version {PROTOCOL_VERSION}" in doc

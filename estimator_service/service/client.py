@@ -52,6 +52,9 @@ __all__ = [
 log = logging.getLogger("estimator_service.client")
 
 
+ZENOH_TIMEOUT = "Timeout"  # the error reply zenoh itself gives a query no queryable answered in time
+
+
 class ServiceError(RuntimeError):
     """The service answered with an error, or did not answer."""
 
@@ -170,17 +173,19 @@ class EstimatorClient:
                 keys.blimp_key(self.blimp, kind), timeout=self.timeout, target=zenoh.QueryTarget.ALL
             )
         handler = querier.get(payload=payload, encoding=MSGPACK)
+        silent = f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
         try:  # the first reply is the answer: no wait for the query's final message
             r = handler.recv()
         except zenoh.ZError:  # closed without a reply
-            msg = f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
-            raise NoReply(msg) from None
+            raise NoReply(silent) from None
         if r.ok is None:
             raw_err = r.err.payload.to_bytes()
             try:
                 text = decode(raw_err).get("error", "unknown error")
             except ValueError:
                 text = raw_err.decode("utf-8", "replace")  # zenoh's own errors, e.g. Timeout
+                if text == ZENOH_TIMEOUT:  # a hung service: as no reply (failover retries it)
+                    raise NoReply(f"{silent} ({text})") from None
             error = SessionLost if str(text).startswith(NO_SESSION) else ServiceError
             raise error(f"{kind} for blimp {self.blimp!r}: {text}")
         body = r.ok.payload.to_bytes()

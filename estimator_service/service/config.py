@@ -11,9 +11,21 @@ from pathlib import Path
 
 import zenoh
 
-__all__ = ["DEFAULT_ENDPOINT", "describe", "serve_until_stopped", "zenoh_config", "zenoh_message"]
+__all__ = [
+    "DEFAULT_ENDPOINT",
+    "SERVICE_LEASE_MS",
+    "describe",
+    "serve_until_stopped",
+    "zenoh_config",
+    "zenoh_message",
+]
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: the link lease a service announces (zenoh's default is 10 s): a service that stops answering
+#: zenoh's keep-alives (four per lease, sent by zenoh's own threads) is dropped by the others,
+#: and its blimps move to the survivors, after this long
+SERVICE_LEASE_MS = 2000
+_LEASE_KEY = "transport/link/tx/lease"
 
 
 _RUST_PLACE = re.compile(r"\s+at /\S+\.rs:\d+\.?")  # " at /root/.cargo/.../endpoint.rs:615."
@@ -33,10 +45,16 @@ def zenoh_message(exc: BaseException) -> str:
     return _WRAPPED.sub(_plain, _RUST_PLACE.sub("", str(exc))).strip()
 
 
-def zenoh_config(listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = None) -> zenoh.Config:
-    """:func:`_config`; a bad endpoint or configuration file is a ValueError naming it."""
+def zenoh_config(
+    listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = None, lease_ms: int | None = None
+) -> zenoh.Config:
+    """:func:`_config`, announcing a link lease of ``lease_ms`` unless the file sets one; a bad
+    endpoint or configuration file is a ValueError naming it."""
     try:
-        return _config(listen, connect, file)
+        cfg = _config(listen, connect, file)
+        if lease_ms is not None and cfg.get_json(_LEASE_KEY) == zenoh.Config().get_json(_LEASE_KEY):
+            cfg.insert_json5(_LEASE_KEY, str(int(lease_ms)))
+        return cfg
     except zenoh.ZError as exc:
         where = f"--zenoh-config {file}" if file is not None else f"endpoints {[*listen, *connect]}"
         raise ValueError(f"{where}: {zenoh_message(exc)}") from None

@@ -22,6 +22,7 @@ from scipy.stats import chi2
 from estimator_service.cli_args import checked_float, checked_int
 from estimator_service.filters import StepInfo
 from estimator_service.filters.policy import Gate, step_one
+from estimator_service.service.config import SERVICE_LEASE_MS
 
 __all__ = [
     "OPTIONS",
@@ -76,8 +77,9 @@ class Limits:
         A service whose own clock shows it was frozen (stopped, swapped out) for longer than
         this forgets every session on waking: the fleet may have given its blimps to others
         meanwhile, and their clients re-create each session from their last belief instead of
-        meeting the stale one. Half zenoh's default 10 s lease, after which the others see
-        the frozen service gone.
+        meeting the stale one. Half the lease a service announces
+        (:data:`~estimator_service.service.config.SERVICE_LEASE_MS`), after which the others
+        see the frozen service gone.
     catch_up_share, catch_up_burst_s
         Catching up, the predictions a camera frame needs beyond the first to reach its time,
         may use at most ``catch_up_share`` seconds of filtering per second over all sessions,
@@ -90,14 +92,14 @@ class Limits:
     horizon_s: float = 60.0
     max_gap_steps: int = 1000
     queue_cap: int = 1024
-    queue_bytes: int = 4 * 2**20
+    queue_bytes: int = 4_000_000
     total_queue_bytes: int = 256 * 2**20
     max_controls: int = 256
     gate_p: float = 1e-9
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
     evict_idle_s: float = 30.0
-    fence_after_s: float = 5.0
+    fence_after_s: float = SERVICE_LEASE_MS / 2000
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
 

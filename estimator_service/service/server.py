@@ -31,6 +31,7 @@ from estimator_service.service import keys
 from estimator_service.service.batching import step_together
 from estimator_service.service.config import (
     DEFAULT_ENDPOINT,
+    SERVICE_LEASE_MS,
     describe,
     serve_until_stopped,
     zenoh_config,
@@ -103,7 +104,8 @@ class EstimatorService:
         self.oversized = 0  # inputs refused in the zenoh callback, before any queue
         self._pool = WorkerPool(config.workers, step_together)
         self._build_filter(config.filter, config.model)  # fail fast on missing model files
-        self.zenoh_cfg = zenoh_config(config.listen, config.connect, config.zenoh_config_file)
+        cfg_file = config.zenoh_config_file
+        self.zenoh_cfg = zenoh_config(config.listen, config.connect, cfg_file, lease_ms=SERVICE_LEASE_MS)
         self.zenoh = zenoh.open(self.zenoh_cfg)
         self._pubs: dict[str, Any] = {}
         self._stop = threading.Event()
