@@ -168,3 +168,21 @@ def test_fig3_checks_robustness_at_every_size_and_sparse_accuracy_with_few_pseud
     f3["points"]["56"]["ukf"] = run(0.5, 25.0)  # the lab run's smallest size
     f3["pseudo"]["5"]["ukf"] = run(0.0, 17.0)  # x1.55
     assert {k: ok for k, _, ok in claims(res)} == dict.fromkeys(keys, False)
+
+
+def test_fig3_log_likelihood_is_the_papers_over_successful_runs_only() -> None:
+    """Fig. 3's right panel: the mean log-likelihood of the runs that did not fail, over the
+    repeats weighted by how many succeeded; NaN where every run failed."""
+    import math
+
+    from agents.experiments.fig3 import Fig3Run, fig3_table
+
+    def rep(mll_ok: float, ok: int, failed: float) -> dict:
+        row = {"outside_3sigma": 0.1, "failed": failed, "mll": -1e8, "aggregate_rms": 1.0,
+               "mll_successful": mll_ok, "successful_runs": float(ok)}  # fmt: skip
+        return {"ekf": row, "ukf": {**row, "successful_runs": 0.0, "mll_successful": math.nan}}
+
+    runs = [Fig3Run("points", 40, r, "gp", None, 0, None, None, 10, None) for r in range(2)]  # type: ignore[arg-type]
+    table = fig3_table(runs, [rep(10.0, 3, 0.25), rep(20.0, 1, 0.75)])["points"]["40"]
+    assert table["ekf"]["mll_successful"][0] == pytest.approx((3 * 10.0 + 20.0) / 4)
+    assert table["ekf"]["failed"][0] == pytest.approx(0.5) and math.isnan(table["ukf"]["mll_successful"][0])

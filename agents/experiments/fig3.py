@@ -55,6 +55,9 @@ def _track(folder: Path, kind: str, test: Flight, seg: int) -> dict[str, dict[st
             sc["aggregate_rms"] = aggregate_rms(sc)
             runs.append(sc)
         res[filt] = {m: float(np.mean([sc[m] for sc in runs])) for m in MEASURES}
+        ok = [sc["mll"] for sc in runs if not sc["failed"]]  # the paper's MLL: successful runs only
+        res[filt]["mll_successful"] = float(np.mean(ok)) if ok else math.nan
+        res[filt]["successful_runs"] = float(len(ok))
     return res
 
 
@@ -122,10 +125,15 @@ def fig3_table(
 
 
 def _successful_mll(res: Sequence[dict], f: str) -> list[float]:
-    """``[mean, sd]`` of the mean log-likelihood over the runs of filter ``f`` that did not
-    fail (the paper's Fig. 3 measure beside the failed runs); NaN when every run failed."""
-    ok = [x[f]["mll"] for x in res if not x[f]["failed"]]
-    return [float(np.mean(ok)), float(np.std(ok))] if ok else [math.nan, math.nan]
+    """``[mean, sd]`` over the repeats of filter ``f``'s mean log-likelihood of its successful
+    tracking runs, weighted by their number (the paper's Fig. 3 measure beside the failed
+    runs); NaN when every run failed (or the repeats predate the measure)."""
+    pairs = [(x[f]["mll_successful"], x[f]["successful_runs"]) for x in res if x[f].get("successful_runs")]
+    if not pairs:
+        return [math.nan, math.nan]
+    v, w = np.array(pairs).T
+    mean = float(np.average(v, weights=w))
+    return [mean, float(np.sqrt(np.average((v - mean) ** 2, weights=w)))]
 
 
 def plot_data_sparsity(res: dict, path: Path) -> Path:
