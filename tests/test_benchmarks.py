@@ -69,6 +69,10 @@ def test_benchmark_quick_mode_prints_json_last(script: str) -> None:
     if script != "model_swap.py":  # every benchmark measures this machine's limits in its own run
         assert {"dgemm_gflops", "read_gbs"} <= set(last)
     assert all(isinstance(last[k], (int, float)) and math.isfinite(last[k]) for k in EXPECTED[script])
+    if script == "bench_service.py":  # the hostile peer's figures, even at smoke size
+        assert last["forged_token_sessions_lost"] == 0 and last["forged_token_resets_ok"] == 1.0
+        assert last["stale_owner_overrides"] == 0 and last["hung_owner_failover_s"] <= 3.0
+        assert last["queue_bytes_max_mb"] <= 4.0  # (the near-horizon p99 is timing: judged by the full run)
 
 
 def test_the_real_robot_experiment_runs_quick_and_reports(tmp_path: Path) -> None:

@@ -324,7 +324,7 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
             return
         times = sorted(_lock_step_ms(good, flight, k) for k in range(20))
         print("healthy worst steps (ms):", [round(t) for t in times[-4:]])
-        assert times[-2] < 600.0, times[-5:]
+        assert times[-2] < 100.0, times[-5:]  # 2 s bursts: one catch-up held a worker for 0.3-0.7 s
         refused = sum(a.status()["refused_catch_up"] for a in attackers)
         errors = [e["error"] for a in attackers for e in a.errors(wait=0.2)]
         assert refused > 0 and any("--catch-up-share" in e for e in errors), (refused, errors[:2])
