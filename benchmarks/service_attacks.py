@@ -12,11 +12,10 @@ adds to its last line (each scenario as the service's tests run it, measured her
   instead of one re-created from the survivor's belief.
 * :func:`near_horizon`: two attacking blimps, one on the EKF and one on the particle filter,
   send chains of camera frames each just inside the 60 s horizon while a healthy blimp
-  lock-steps: ``near_horizon_healthy_p99_ms``, its step latency's 99th percentile. Each new
-  particle-filter session's first frame costs one full particle-filter step before its step
-  time is known (0.3-0.6 s with 2,000 particles on the paper-size GP): when it lands beside
-  other work, one healthy step waits for it (p99 of 60 steps 258 ms in one smoke run of
-  five; 7-14 ms in the others).
+  lock-steps: ``near_horizon_healthy_p99_ms``, its step latency's 99th percentile. A
+  catch-up the budget accepts (up to ``--catch-up-burst``, 2 s) holds a worker until done,
+  and a new particle-filter session's first frame costs one full particle-filter step
+  (0.3-0.6 s with 2,000 particles on the paper-size GP) before its step time is known.
 * ``queue_bytes_max_mb``: the most payload one blimp's queue can hold (the service's
   ``queue_bytes`` limit, in 10^6 bytes), enforced as ``tests/test_service_limits.py`` shows.
 """

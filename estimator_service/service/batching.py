@@ -12,6 +12,7 @@ from estimator_service.filters.policy import step_many
 from estimator_service.service.inbox import Job
 from estimator_service.service.limits import gate_for
 from estimator_service.service.protocol import ProtocolError
+from estimator_service.service.session import RepeatedStep
 
 if TYPE_CHECKING:  # sessions call this module; it only uses their methods
     from estimator_service.service.session import Session
@@ -33,6 +34,9 @@ def step_together(batch: list[tuple[Session, Job]]) -> None:
         except ProtocolError as exc:
             s.reject(str(exc), job[0], job[2])
             s.finish(job)
+        except RepeatedStep as rep:  # a retried query: answered again, not stepped
+            s.answer(job, lambda rep=rep: _raise(rep))
+            s.finish(job)
     if not ready:
         return
     try:
@@ -53,3 +57,7 @@ def step_together(batch: list[tuple[Session, Job]]) -> None:
     for (s, job, (step, _, _)), (belief, info) in zip(ready, results, strict=True):
         s.answer(job, lambda s=s, step=step, b=belief, i=info: s.commit_batched(step, b, i, t0, len(ready)))
         s.finish(job)
+
+
+def _raise(exc: Exception) -> bytes:
+    raise exc

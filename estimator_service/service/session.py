@@ -38,7 +38,16 @@ from estimator_service.service.protocol import (
 from estimator_service.service.workers import WorkerPool
 from estimator_service.system import System
 
-__all__ = ["Session", "SessionSettings"]
+__all__ = ["RepeatedStep", "Session", "SessionSettings"]
+
+
+class RepeatedStep(Exception):
+    """A ``step`` query sent again with the ``seq`` and ``t`` of the session's last step (a
+    client retrying after a time-out): answered with the same reply, nothing recomputed."""
+
+    def __init__(self, reply: bytes) -> None:
+        super().__init__("repeated step")
+        self.reply = reply
 
 
 @dataclass(frozen=True)
@@ -80,6 +89,8 @@ class Session:
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
     _nis: list = field(default_factory=lambda: [0.0, 0])  # running sum of NIS/dof, count
     _step_s: float = 0.0  # this session's measured seconds per prediction step (0: not yet)
+    _last_step: tuple[int, float, bytes] | None = None  # (seq, t, reply) of the last step answered
+    repeated: int = 0  # step queries answered again from the last reply (clients' retries)
 
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
@@ -166,6 +177,9 @@ class Session:
                 query.reply(query.key_expr, reply, encoding=MSGPACK)
             if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
                 self.publish("belief", reply)
+        except RepeatedStep as rep:  # a retried query: the same reply, the belief not published again
+            if query is not None:
+                query.reply(query.key_expr, rep.reply, encoding=MSGPACK)
         except ProtocolError as exc:
             self.reject(str(exc), kind, query)
         except Exception as exc:  # a filter failure must not kill the session
@@ -253,7 +267,7 @@ class Session:
         """:meth:`_commit` for a step computed in a batch of ``together`` sessions."""
         self.gated += info.gated  # refused by the gate: the belief is the prediction
         self.batched += together > 1
-        return self._commit(belief, info, step.seq, step.t, t0)
+        return self._remember(self._commit(belief, info, step.seq, step.t, t0), step.seq, step.t)
 
     @property
     def filter(self) -> Any:
@@ -268,6 +282,10 @@ class Session:
     def prepare_step(self, payload: bytes) -> tuple[Any, np.ndarray, np.ndarray]:
         """Decode and check a ``step`` input: the parsed step, ``z`` and ``valid``."""
         s = parse_step(decode(payload), self._sizes, self.settings.system.control_dim)
+        last = self._last_step
+        if last is not None and (s.seq, s.t) == last[:2] and s.t == self.t:
+            self.repeated += 1
+            raise RepeatedStep(last[2])
         if self.t is not None and s.t <= self.t:
             self.late += 1
             raise ProtocolError(f"field 't': step time {s.t} is not after the session time {self.t}")
@@ -282,7 +300,12 @@ class Session:
             self._filter, self._belief, s.u, z, valid, self._rng, self.settings.limits.gate_p
         )
         self.gated += info.gated
-        return self._commit(belief, info, s.seq, s.t, t0)
+        return self._remember(self._commit(belief, info, s.seq, s.t, t0), s.seq, s.t)
+
+    def _remember(self, reply: bytes, seq: int, t: float) -> bytes:
+        """Keep a step's reply for a retried query (:class:`RepeatedStep`)."""
+        self._last_step = (seq, t, reply)
+        return reply
 
     def _camera(self, c) -> bytes:
         t0 = time.perf_counter()
@@ -354,7 +377,7 @@ class Session:
             "v": PROTOCOL_VERSION, "blimp": self.blimp, "filter": self.filter_name, "model": self.model_name,
             "model_version": self.model_version, "steps": self.steps, "rejected": self.rejected,
             "late": self.late, "dropped": self.dropped, "gated": self.gated,
-            "refused_catch_up": self.refused_catch_up,
+            "refused_catch_up": self.refused_catch_up, "repeated": self.repeated,
             "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
             "batched": self.batched, "t": self.t, "queue": len(self._inbox),
             "timings": {"count": len(self._timings), "step_ms_p50": float(np.median(ms)),
