@@ -139,22 +139,20 @@ def fly_through_service(
     truth, est = [], {k: [] for k in kinds}
     dt = env.unwrapped.config.dt
     steps = round(seconds / dt)
-    bar = ProgressBar("fly via zenoh service", steps)
-    for _ in range(steps):
-        bar.advance()
-        action = pilot.act(info["state"])
-        obs, _, terminated, _, info = env.step(action)
-        if terminated:
-            bar.stop(
-                f"the blimp crashed (left the room, or touched the floor or ceiling) at t = {info['t']:.1f} s"
-            )
-            break
-        frames = env_frames(obs)
-        for k, c in clients.items():
-            b = c.step(action, frames, info["t"])
-            est[k].append((b["mean"], np.diag(b["cov"])))
-        truth.append(info["state"])
-    bar.close()
+    with ProgressBar("fly via zenoh service", steps) as bar:
+        for _ in range(steps):
+            bar.advance()
+            action = pilot.act(info["state"])
+            obs, _, terminated, _, info = env.step(action)
+            if terminated:
+                where = "left the room, or touched the floor or ceiling"
+                bar.stop(f"the blimp crashed ({where}) at t = {info['t']:.1f} s")
+                break
+            frames = env_frames(obs)
+            for k, c in clients.items():
+                b = c.step(action, frames, info["t"])
+                est[k].append((b["mean"], np.diag(b["cov"])))
+            truth.append(info["state"])
     for c in clients.values():
         c.close()
     session.close()

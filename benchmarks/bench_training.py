@@ -53,7 +53,7 @@ def data(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 def gpbf(*args: str) -> str:
     """Run the ``gpbf`` command line in a new process; its stdout."""
     cmd = [sys.executable, "-c", "import sys; from agents.cli import main; sys.exit(main())", *args]
-    return subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=4 * 3600).stdout
 
 
 def readme_run(minutes: float, smoke: bool) -> dict[str, float]:

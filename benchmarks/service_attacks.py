@@ -99,15 +99,18 @@ def _fleet(models: Path, n: int) -> Iterator[tuple[list, object]]:
     )  # fmt: skip
     started: list = []
     try:
-        router.stdout.readline()
+        if "ready" not in router.stdout.readline():  # the router prints one line, or exits
+            raise RuntimeError("the zenoh router did not start")
         join = ("--connect", f"tcp/127.0.0.1:{port}", "--model", "sparse")
         started = [spawn_service(models, free_port(), *join) for _ in range(n)]
         session = open_session([f"tcp/127.0.0.1:{port}"])
-        deadline = time.time() + 20
-        while time.time() < deadline and not _fleet_of(session, n):
-            time.sleep(0.2)
-        yield started, session
-        session.close()
+        try:
+            deadline = time.time() + 20
+            while time.time() < deadline and not _fleet_of(session, n):
+                time.sleep(0.2)
+            yield started, session
+        finally:
+            session.close()
     finally:
         for p, _ in started:
             p.send_signal(signal.SIGCONT)

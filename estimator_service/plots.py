@@ -146,10 +146,11 @@ def reliability_path(path: Path) -> Path:
 def plot_reliability(runs: dict[str, TrackResult], path: Path, title: str = "") -> Path:
     """Reliability diagrams: per state group, the observed against the nominal coverage of the
     central intervals of each run's beliefs (:func:`~estimator_service.tracking.reliability`),
-    one line per run of ``runs`` (label: run), with the diagonal a calibrated belief follows."""
+    one line per run of ``runs`` (``{label: run}``, all of one system), with the diagonal a
+    calibrated belief follows; written to ``path``."""
     plt = _pyplot()
     first = next(iter(runs.values()))
-    groups = first.system.groups if first.system is not None else blimp_system().groups
+    groups = (first.system or blimp_system()).groups
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups) + 0.4, 3.6), squeeze=False)
     levels = np.asarray(RELIABILITY_LEVELS)
     for label, r in runs.items():

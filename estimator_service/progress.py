@@ -6,6 +6,7 @@ never falls silent for minutes."""
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -21,13 +22,16 @@ class ProgressBar:
     ----------
     every_s
         Seconds between two plain lines when the stream is not a terminal (also while no
-        progress is reported).
+        progress is reported, from a background thread until :meth:`close` or :meth:`stop`:
+        use the bar as a context manager so an error ends it too).
     """
 
     def __init__(
         self, desc: str, total: int | None = None, *, unit: str = "step", enabled: bool = True,
         stream: TextIO | None = None, every_s: float = 10.0,
     ) -> None:  # fmt: skip
+        if not (math.isfinite(every_s) and every_s > 0):
+            raise ValueError(f"every_s must be a positive number of seconds, got {every_s!r}")
         self.desc, self.total, self.unit, self.n = desc, total, unit, 0
         self._stream = stream or sys.stderr
         self._enabled, self._every = enabled, every_s
@@ -63,7 +67,8 @@ class ProgressBar:
             self._bar.update(delta)
         elif self._enabled and time.monotonic() - self._last >= self._every:
             with self._lock:
-                self._line()
+                if time.monotonic() - self._last >= self._every:  # the heartbeat may have printed
+                    self._line()
 
     def advance(self, k: int = 1, postfix: str = "") -> None:
         self.update_to(self.n + k, postfix=postfix)

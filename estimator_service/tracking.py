@@ -288,8 +288,15 @@ def coverage_by_sigma(error: FloatArray, cov: FloatArray) -> dict[int, FloatArra
     """``{k: (n,)}`` for k = 1, 2, 3: per dimension, the fraction of steps whose error
     ``(T, n)`` lies within ``k`` standard deviations of the belief ``cov (T, n, n)``
     (a calibrated Gaussian belief: :data:`GAUSSIAN_COVERAGE`)."""
+    inside = _within(error, cov, np.array(list(GAUSSIAN_COVERAGE), dtype=float))
+    return {k: inside[i].mean(axis=0) for i, k in enumerate(GAUSSIAN_COVERAGE)}
+
+
+def _within(error: FloatArray, cov: FloatArray, k: FloatArray) -> NDArray[np.bool_]:
+    """``(K, T, n)``: whether each error ``(T, n)`` lies within ``k (K,)`` standard deviations
+    of its belief ``cov (T, n, n)`` (a zero standard deviation covers only an exact 0)."""
     sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-    return {k: np.mean(np.abs(error) <= k * sd, axis=0) for k in GAUSSIAN_COVERAGE}
+    return np.abs(error)[None] <= k[:, None, None] * sd[None]
 
 
 #: nominal central coverages of a reliability diagram (a Gaussian belief's interval mean +- z sd)
@@ -297,18 +304,32 @@ RELIABILITY_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.683, 0.8, 0.9, 0.954, 0.99
 
 
 def reliability(
-    error: FloatArray, cov: FloatArray, groups: Sequence[Group], levels: Sequence[float] = RELIABILITY_LEVELS
-) -> dict[str, FloatArray]:
-    """A reliability diagram's points per state group: ``{group: (L,)}``, for each nominal
-    central coverage ``p`` of ``levels`` the fraction of steps and of the group's dimensions
-    whose error ``(T, n)`` lies within the belief's ``norm.ppf((1 + p) / 2)`` standard
-    deviations (``cov (T, n, n)``). A calibrated Gaussian belief lies on the diagonal;
-    points below it are overconfident, above it too wide."""
-    sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-    z = np.abs(error) / np.where(sd > 0, sd, np.inf)  # a zero sd covers nothing but an exact 0
-    k = norm.ppf((1.0 + np.asarray(levels, dtype=float)) / 2.0)  # (L,)
-    inside = z[None] <= k[:, None, None]  # (L, T, n)
-    return {g.name: inside[:, :, list(g.indices)].mean(axis=(1, 2)) for g in groups}
+    error: FloatArray, cov: FloatArray, groups: Sequence[Group] | None = None,
+    levels: Sequence[float] = RELIABILITY_LEVELS,
+) -> dict[str, FloatArray]:  # fmt: skip
+    """A reliability diagram's points per state group.
+
+    Parameters
+    ----------
+    error: (T, n)
+        Estimate minus truth.
+    cov: (T, n, n)
+        The beliefs' covariances.
+    groups
+        State groups (default: the blimp's).
+    levels: (L,)
+        Nominal central coverages ``p``.
+
+    Returns
+    -------
+    dict
+        ``{group: (L,)}``: for each ``p``, the fraction of steps and of the group's dimensions
+        whose error lies within the belief's ``norm.ppf((1 + p) / 2)`` standard deviations.
+        A calibrated Gaussian belief lies on the diagonal; points below it are
+        overconfident, above it too wide.
+    """
+    inside = _within(error, cov, norm.ppf((1.0 + np.asarray(levels, dtype=float)) / 2.0))  # (L, T, n)
+    return {g.name: inside[:, :, list(g.indices)].mean(axis=(1, 2)) for g in groups or _blimp_groups()}
 
 
 def within_3sigma(error: FloatArray, cov: FloatArray) -> float:

@@ -499,7 +499,7 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
 
     spec = AgentSpec(algo="sac", variant="belief", models=models, seed=2)
     out = tmp_path / "agent"
-    with pytest.raises(FileNotFoundError, match="no checkpoint in"):
+    with pytest.raises(FileNotFoundError, match="no complete checkpoint in"):
         train_agent(spec, 256, out, resume=True, progress_bar=False)
     train_agent(spec, 256, out, eval_freq=64, eval_episodes=1, checkpoint_freq=64, progress_bar=False,
                 command=["gpbf", "train-agent", "--algo", "sac"])  # fmt: skip
@@ -509,11 +509,20 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
     assert latest_checkpoint(out)[1] == 256
     buffers = [f.name for f in (out / "checkpoints").glob("*replay_buffer*")]
     assert buffers == ["agent_replay_buffer_256_steps.pkl"]
+    assert latest_checkpoint(out, ("replay_buffer",))[1] == 256
+    (out / "checkpoints" / "agent_320_steps.zip").write_bytes(b"")  # a run stopped before its buffer
+    assert latest_checkpoint(out, ("replay_buffer",))[1] == 256 and latest_checkpoint(out)[1] == 320
+    (out / "checkpoints" / "agent_320_steps.zip").unlink()
     before = np.load(out / "evaluations.npz")["timesteps"].tolist()
     train_agent(spec, 384, out, eval_freq=64, eval_episodes=1, checkpoint_freq=64, progress_bar=False,
                 resume=True)  # fmt: skip
     agent, _ = load_agent(out)
     assert agent.num_timesteps == 384
-    assert json.loads((out / "run.json").read_text())["resumed_from_steps"] == 256
+    run = json.loads((out / "run.json").read_text())
+    assert run["resumed_from_steps"] is None and run["command"][:2] == [
+        "gpbf",
+        "train-agent",
+    ]  # the first run's
+    assert [r["resumed_from_steps"] for r in run["resumes"]] == [256]
     after = np.load(out / "evaluations.npz")["timesteps"].tolist()
     assert before == [64, 128, 192, 256] and after == [*before, 320, 384]

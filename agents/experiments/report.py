@@ -19,7 +19,7 @@ from estimator_service.tracking import GROUPS, consistency_band
 FIG3_FILE = "fig3_training_points.png"  # written by the reproduce run, shown by the report
 FIG4_FILE = "fig4_left_turns.png"
 
-__all__ = ["FIG3_FILE", "FIG4_FILE", "SHARP_ANGLE_SD_DEG", "beyond", "claims", "write_report"]
+__all__ = ["FIG3_FILE", "FIG4_FILE", "SHARP_ANGLE_SD_DEG", "beyond", "claims", "verdicts", "write_report"]
 
 #: a containment claim counts only for a sharp belief: an angle's standard deviation at most half
 #: that of a belief that knows nothing (uniform on the circle: 360 / sqrt(12) = 103.9 deg)
@@ -224,31 +224,43 @@ def claims(res: dict) -> list[tuple[str, str, bool]]:
         checks += _filter_checks(tr, f)
     checks += _ukf_checks(tr) + _table9_checks(tr) + _fig3_checks(res.get("fig3") or {})
     checks += _fig4_checks(res.get("fig4", {}))
-    t10 = res.get("table10", {})
-    if "GP-EKF" in t10:
-        ukf = t10["GP-UKF (alpha=1)"]["position"]
-        others = t10["GP-EKF"]["position"], t10["GP-PF"]["position"]
-        text = "Table 10: GP-UKF tracks worse than GP-EKF and GP-PF (position RMS)"
-        checks.append(("table10_ukf_worst", text, ukf > max(others)))
-    return checks
+    return checks + _table10_check(res.get("table10", {}), "", "table10_ukf_worst", "Table 10")
 
 
 def beyond(res: dict) -> list[tuple[str, str, bool]]:
     """Orderings checked here that the paper does not report: the hetGP particle filter
     (the paper has none) and Table 10 with the paper's own GP toolbox set-up."""
     tr, checks = res["tracking"], []
-    if "pf/hetgp" in tr and "pf/param" in tr:
-        kinds = [k.split("/")[1] for k in tr if k.startswith("pf/") and k != "pf/param"]
-        imp = {k: improvement(tr, f"pf/{k}", "pf/param") for k in kinds}
-        text = f"PF: hetGP best or tied ({_big(imp['hetgp'], '{:.0f}')}%; tolerance 2 points)"
-        checks.append(("table7_pf_hetgp_best", text, imp["hetgp"] >= max(0.0, *imp.values()) - 2))
-    t10 = res.get("table10", {})
-    if "GP-EKF [toolbox]" in t10:
-        ukf = t10["GP-UKF (alpha=1) [toolbox]"]["position"]
-        others = t10["GP-EKF [toolbox]"]["position"], t10["GP-PF [toolbox]"]["position"]
-        text = "Table 10 (the toolbox GPs): GP-UKF tracks worse than GP-EKF and GP-PF"
-        checks.append(("table10_ukf_worst_toolbox", text, ukf > max(others)))
-    return checks
+    if "pf/param" in tr:
+        checks += _hetgp_best(
+            {k[3:]: improvement(tr, k, "pf/param") for k in tr if k.startswith("pf/")}, "pf"
+        )
+    toolbox = _table10_check(res.get("table10", {}), " [toolbox]", "table10_ukf_worst_toolbox",
+                             "Table 10 (the toolbox GPs)")  # fmt: skip
+    return checks + toolbox
+
+
+def verdicts(res: dict) -> dict[str, dict[str, bool]]:
+    """``{"claims": {key: holds}, "beyond": {key: holds}}`` of ``res``, as results.json keeps them."""
+    return {"claims": {k: ok for k, _, ok in claims(res)}, "beyond": {k: ok for k, _, ok in beyond(res)}}
+
+
+def _hetgp_best(imp: dict[str, float], f: str) -> list[tuple[str, str, bool]]:
+    """Table 7's hetGP ordering for filter ``f`` from the improvements ``imp`` of every model
+    over Param (Param counts too: its improvement over itself is 0)."""
+    if "hetgp" not in imp:
+        return []
+    text = f"Table 7: {f.upper()}: hetGP best or tied ({_big(imp['hetgp'], '{:.0f}')}%; tolerance 2 points)"
+    return [(f"table7_{f}_hetgp_best", text, imp["hetgp"] >= max(0.0, *imp.values()) - 2)]
+
+
+def _table10_check(t10: dict, suffix: str, key: str, who: str) -> list[tuple[str, str, bool]]:
+    """Table 10: the GP-UKF tracks worse than the GP-EKF and the GP-PF (position RMS)."""
+    if f"GP-EKF{suffix}" not in t10:
+        return []
+    ukf = t10[f"GP-UKF (alpha=1){suffix}"]["position"]
+    others = t10[f"GP-EKF{suffix}"]["position"], t10[f"GP-PF{suffix}"]["position"]
+    return [(key, f"{who}: GP-UKF tracks worse than GP-EKF and GP-PF (position RMS)", ukf > max(others))]
 
 
 def _table6_checks(t5: dict) -> list[tuple[str, str, bool]]:
@@ -419,11 +431,8 @@ def _filter_checks(tr: dict, f: str) -> list[tuple[str, str, bool]]:
         egp = _big(imp["egp"], "{:.0f}")
         text = f"Table 7: {f.upper()}: EGP at least as good as GP ({egp}%; tolerance 1 point)"
         checks.append((f"table7_{f}_egp_ge_gp", text, imp["egp"] >= imp["gp"] - 1))
-    if "hetgp" in imp and f in HETGP_FILTERS:  # Param counts too: its improvement over itself is 0
-        best = max(0.0, *imp.values())
-        het = _big(imp["hetgp"], "{:.0f}")
-        text = f"Table 7: {f.upper()}: hetGP best or tied ({het}%; tolerance 2 points)"
-        checks.append((f"table7_{f}_hetgp_best", text, imp["hetgp"] >= best - 2))
+    if f in HETGP_FILTERS:
+        checks += _hetgp_best(imp, f)
     if imp:
         worst = min(imp, key=imp.get)
         least = _big(imp[worst], "{:.0f}")
@@ -486,8 +495,7 @@ def rewrite(out: Path) -> Path:
     from estimator_service.files import atomic_write_text
 
     res = json.loads((out / "results.json").read_text())
-    res["claims"] = {key: ok for key, _, ok in claims(res)}
-    res["beyond"] = {key: ok for key, _, ok in beyond(res)}
+    res.update(verdicts(res))
     atomic_write_text(out / "results.json", json.dumps(res, indent=2))
     return write_report(out, res)
 

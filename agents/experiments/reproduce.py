@@ -299,9 +299,8 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     ]
     fig3 = _fig3_runs(folds[0], s, out)
     units += [*fig3, partial(train_no_left_turns, out, folds[0][0], s), partial(table10_unit, out, s)]
-    bar = ProgressBar("reproduce", len(units), unit="unit", enabled=progress)
-    done = run_all(units, jobs, bar.advance)
-    bar.close()
+    with ProgressBar("reproduce", len(units), unit="unit", enabled=progress) as bar:
+        done = run_all(units, jobs, bar.advance)
     fold_scores, t10 = done[: len(folds)], done[-1]
     results = {
         "fig3": _plot_fig3(fig3, done[len(folds) : len(folds) + len(fig3)], out),
@@ -319,10 +318,9 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     ]
     results["wall_s"] = time.perf_counter() - t0
     results["provenance"] = provenance(results["wall_s"])
-    from agents.experiments.report import beyond, claims, write_report
+    from agents.experiments.report import verdicts, write_report
 
-    results["claims"] = {key: ok for key, _, ok in claims(results)}
-    results["beyond"] = {key: ok for key, _, ok in beyond(results)}
+    results.update(verdicts(results))
     atomic_write_text(out / "results.json", json.dumps(results, indent=2))
 
     write_report(out, results)

@@ -149,18 +149,22 @@ class _Checkpoints(CheckpointCallback):
         return done
 
 
-def latest_checkpoint(folder: str | Path) -> tuple[Path, int] | None:
-    """The newest checkpoint model in an agent folder's ``checkpoints/`` and its steps."""
+def latest_checkpoint(folder: str | Path, companions: tuple[str, ...] = ()) -> tuple[Path, int] | None:
+    """The newest checkpoint model in an agent folder's ``checkpoints/`` whose companion files
+    ``agent_<companion>_<steps>_steps.pkl`` all exist (a run that stopped while saving one
+    leaves a newer, incomplete checkpoint), and its steps; None when there is none."""
     found = [(int(m.group(1)), f) for f in (Path(folder) / CHECKPOINTS).glob("agent_*_steps.zip")
              if (m := _CHECKPOINT.fullmatch(f.name))]  # fmt: skip
-    if not found:
-        return None
-    steps, path = max(found)
-    return path, steps
+    for steps, path in sorted(found, reverse=True):
+        if all((path.parent / f"agent_{c}_{steps}_steps.pkl").is_file() for c in companions):
+            return path, steps
+    return None
 
 
 def _versions() -> dict[str, str]:
-    out = {"python": platform.python_version()}
+    from agents.experiments.provenance import code_version
+
+    out = {"code": code_version(), "python": platform.python_version()}
     for name in _VERSIONED:
         try:
             out[name] = metadata.version(name.replace("_", "-"))
@@ -215,16 +219,14 @@ def train_agent(
     if not (isinstance(checkpoint_freq, int) and checkpoint_freq >= 1):
         raise ValueError(f"checkpoint_freq must be a positive integer, got {checkpoint_freq!r}")
     out = Path(out_dir)
-    start = latest_checkpoint(out) if resume else None
+    needs = ("replay_buffer",) if hasattr(ALGOS[spec.algo], "load_replay_buffer") else ()
+    needs += ("vecnormalize",) if params.normalize is not None else ()
+    start = latest_checkpoint(out, needs) if resume else None
     if resume and start is None:
-        raise FileNotFoundError(f"resume: no checkpoint in {os.fspath(out / CHECKPOINTS)!r} to continue from")
+        raise FileNotFoundError(
+            f"resume: no complete checkpoint in {os.fspath(out / CHECKPOINTS)!r} to continue from"
+        )
     out.mkdir(parents=True, exist_ok=True)
-    settings = {"timesteps": timesteps, "n_envs": n_envs, "eval_freq": eval_freq,
-                "eval_episodes": eval_episodes, "checkpoint_freq": checkpoint_freq, "small": small,
-                "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
-    run = {"command": list(sys.argv if command is None else command), "spec": asdict(spec), **settings,
-           "resumed_from_steps": None if start is None else start[1], "versions": _versions()}  # fmt: skip
-    atomic_write_text(out / RUN_FILE, json.dumps(run, indent=2))
     venv = make_vec(spec, n_envs)
     eval_env = make_vec(AgentSpec(**{**asdict(spec), "seed": spec.seed + 10_000}), 1)
     if params.normalize is not None:  # the eval env takes the training statistics (EvalCallback)
@@ -248,6 +250,12 @@ def train_agent(
     )
     if start is not None:
         _keep_curve(evaluate, out, start[1])
+    settings = {"timesteps": timesteps, "n_envs": n_envs, "eval_freq": eval_freq,
+                "eval_episodes": eval_episodes, "checkpoint_freq": checkpoint_freq, "small": small,
+                "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
+    _record_run(out, {"command": list(sys.argv if command is None else command), "spec": asdict(spec),
+                      **settings, "resumed_from_steps": None if start is None else start[1],
+                      "versions": _versions()})  # fmt: skip
     checkpoints = _Checkpoints(
         save_freq=max(1, checkpoint_freq // n_envs), save_path=str(out / CHECKPOINTS), name_prefix="agent",
         save_replay_buffer=True, save_vecnormalize=True,
@@ -263,6 +271,16 @@ def train_agent(
     venv.close()
     eval_env.close()
     return out / "model.zip"
+
+
+def _record_run(out: Path, run: dict[str, Any]) -> None:
+    """``out/run.json``: this run's record; a resumed run's joins the earlier ones under
+    ``resumes`` (the first run's command and settings stay on top)."""
+    path = out / RUN_FILE
+    if run["resumed_from_steps"] is not None and path.is_file():
+        first = json.loads(path.read_text())
+        run = {**first, "resumes": [*first.get("resumes", []), run]}
+    atomic_write_text(path, json.dumps(run, indent=2))
 
 
 def _resumed(
@@ -291,11 +309,15 @@ def _keep_curve(evaluate: EvalCallback, out: Path, steps: int) -> None:
     path = out / "evaluations.npz"
     if not path.exists():
         return
-    data = np.load(path)
-    keep = data["timesteps"] <= steps
-    evaluate.evaluations_timesteps = data["timesteps"][keep].tolist()
-    evaluate.evaluations_results = data["results"][keep].tolist()
-    evaluate.evaluations_length = data["ep_lengths"][keep].tolist()
+    with np.load(path) as data:
+        keep = data["timesteps"] <= steps
+        if data["results"].shape[1] != evaluate.n_eval_episodes:
+            had = data["results"].shape[1]
+            raise ValueError(f"resume: the learning curve has {had} episodes per evaluation, "
+                             f"this run {evaluate.n_eval_episodes}: resume with as many")  # fmt: skip
+        evaluate.evaluations_timesteps = data["timesteps"][keep].tolist()
+        evaluate.evaluations_results = data["results"][keep].tolist()
+        evaluate.evaluations_length = data["ep_lengths"][keep].tolist()
 
 
 def _plot_learning_curve(out: Path) -> None:

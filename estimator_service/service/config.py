@@ -48,8 +48,9 @@ def zenoh_message(exc: BaseException) -> str:
 def zenoh_config(
     listen=(DEFAULT_ENDPOINT,), connect=(), file: Path | None = None, lease_ms: int | None = None
 ) -> zenoh.Config:
-    """:func:`_config`, announcing a link lease of ``lease_ms`` unless the file sets one; a bad
-    endpoint or configuration file is a ValueError naming it."""
+    """:func:`_config`, announcing a link lease of ``lease_ms`` unless the file sets another
+    than zenoh's default (10 s); a bad endpoint or configuration file is a ValueError naming
+    it."""
     try:
         cfg = _config(listen, connect, file)
         if lease_ms is not None and cfg.get_json(_LEASE_KEY) == zenoh.Config().get_json(_LEASE_KEY):
