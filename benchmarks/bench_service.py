@@ -254,7 +254,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             **service_attacks.forged_tokens(models),
             **service_attacks.frozen_owner(models),
             **service_attacks.near_horizon(models, steps=60 if args.smoke else 240),
-            "queue_bytes_max_mb": service_attacks.queue_bytes_max_mb(),
+            "queue_bytes_max_mb": service_attacks.queue_bytes_max_mb(models),
         }
         print("hostile peer:", attacks)
     out = {

@@ -16,8 +16,9 @@ adds to its last line (each scenario as the service's tests run it, measured her
   catch-up the budget accepts (up to ``--catch-up-burst``, 2 s) holds a worker until done,
   and a new particle-filter session's first frame costs one full particle-filter step
   (0.3-0.6 s with 2,000 particles on the paper-size GP) before its step time is known.
-* ``queue_bytes_max_mb``: the most payload one blimp's queue can hold (the service's
-  ``queue_bytes`` limit, in 10^6 bytes), enforced as ``tests/test_service_limits.py`` shows.
+* :func:`queue_bytes_max_mb`: 300 inputs of 60 KB sent to one blimp while its worker runs
+  a particle-filter step; the most payload its queue held (``queue_bytes`` in the sessions
+  listing), in 10^6 bytes (the cap: ``--queue-bytes``).
 """
 
 from __future__ import annotations
@@ -41,7 +42,6 @@ from estimator_service.service.client import (
     open_session,
     spawn_service,
 )
-from estimator_service.service.limits import Limits
 
 __all__ = ["forged_tokens", "frozen_owner", "near_horizon", "queue_bytes_max_mb"]
 
@@ -51,8 +51,28 @@ ELLIPSE = [320.0, 240.0, 40.0, 20.0, 0.1]
 DT = 0.25
 
 
-def queue_bytes_max_mb() -> float:
-    return Limits().queue_bytes / 1e6
+def queue_bytes_max_mb(models: Path, puts: int = 300, size: int = 60_000) -> float:
+    """The most payload one blimp's queue held (10^6 bytes), polled in the sessions listing
+    while ``puts`` inputs of ``size`` bytes arrive behind a particle-filter step."""
+    port = free_port()
+    proc, _ = spawn_service(models, port, "--model", "gp")
+    try:
+        session = open_session([f"tcp/127.0.0.1:{port}"])
+        time.sleep(0.3)
+        c = EstimatorClient(session, "flood", timeout=30.0)
+        c.reset(MEAN, STD, t=0.0, filter="pf")
+        c.publish_camera(0, ELLIPSE, DT)  # a particle-filter step keeps the worker busy
+        for _ in range(puts):
+            c.publish_raw("control", b"x" * size)
+        peak, deadline = 0, time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            rows = list_sessions(session)[0]["sessions"]
+            peak = max([peak, *(r["queue_bytes"] for r in rows if r["blimp"] == "flood")])
+            time.sleep(0.01)
+        session.close()
+    finally:
+        proc.kill()
+    return round(peak / 1e6, 3)
 
 
 def forged_tokens(models: Path, blimps: int = 10, tokens: int = 100) -> dict[str, float]:

@@ -267,7 +267,7 @@ class EstimatorService:
         with self._lock:
             rows = [
                 {"blimp": b, "filter": s.filter_name, "model": s.model_name, "steps": s.steps, "t": s.t,
-                 "idle_s": round(s.idle_s(now), 3)}
+                 "idle_s": round(s.idle_s(now), 3), "queue_bytes": s.queue_bytes}
                 for b, s in self._sessions.items()
             ]  # fmt: skip
         body = {

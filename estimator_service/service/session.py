@@ -125,6 +125,11 @@ class Session:
         """Inputs dropped because the queue was full."""
         return self._inbox.dropped
 
+    @property
+    def queue_bytes(self) -> int:
+        """Payload bytes of the inputs pending now."""
+        return self._inbox.bytes
+
     def idle_s(self, now: float | None = None) -> float:
         """Seconds since the last input; 0 while inputs are pending."""
         return self._inbox.idle_s(now)
