@@ -51,14 +51,28 @@ ELLIPSE = [320.0, 240.0, 40.0, 20.0, 0.1]
 DT = 0.25
 
 
+@contextlib.contextmanager
+def _service(models: Path, model: str) -> Iterator[tuple[object, str]]:
+    """One new ``gpbf serve`` of ``model``: a zenoh session connected to it and its endpoint;
+    both closed on exit."""
+    port = free_port()
+    proc, _ = spawn_service(models, port, "--model", model)
+    try:
+        endpoint = f"tcp/127.0.0.1:{port}"
+        session = open_session([endpoint])
+        try:
+            time.sleep(0.3)
+            yield session, endpoint
+        finally:
+            session.close()
+    finally:
+        proc.kill()
+
+
 def queue_bytes_max_mb(models: Path, puts: int = 300, size: int = 60_000) -> float:
     """The most payload one blimp's queue held (10^6 bytes), polled in the sessions listing
     while ``puts`` inputs of ``size`` bytes arrive behind a particle-filter step."""
-    port = free_port()
-    proc, _ = spawn_service(models, port, "--model", "gp")
-    try:
-        session = open_session([f"tcp/127.0.0.1:{port}"])
-        time.sleep(0.3)
+    with _service(models, "gp") as (session, _):
         c = EstimatorClient(session, "flood", timeout=30.0)
         c.reset(MEAN, STD, t=0.0, filter="pf")
         c.publish_camera(0, ELLIPSE, DT)  # a particle-filter step keeps the worker busy
@@ -69,22 +83,15 @@ def queue_bytes_max_mb(models: Path, puts: int = 300, size: int = 60_000) -> flo
             rows = list_sessions(session)[0]["sessions"]
             peak = max([peak, *(r["queue_bytes"] for r in rows if r["blimp"] == "flood")])
             time.sleep(0.01)
-        session.close()
-    finally:
-        proc.kill()
     return round(peak / 1e6, 3)
 
 
 def forged_tokens(models: Path, blimps: int = 10, tokens: int = 100) -> dict[str, float]:
-    port = free_port()
-    proc, _ = spawn_service(models, port, "--model", "sparse")
-    try:
-        session = open_session([f"tcp/127.0.0.1:{port}"])
-        time.sleep(0.3)
+    with _service(models, "sparse") as (session, endpoint):
         held = [EstimatorClient(session, f"held{i}", timeout=3.0) for i in range(blimps)]
         for c in held:
             c.reset(MEAN, STD, t=0.0)
-        liar = open_session([f"tcp/127.0.0.1:{port}"])
+        liar = open_session([endpoint])
         forged = [liar.liveliness().declare_token(keys.liveliness_key(f"fake-{i}")) for i in range(tokens)]
         time.sleep(1.5)
         ok = sum(_answered(lambda c=c: c.step(U, [], DT)) for c in held)
@@ -96,9 +103,6 @@ def forged_tokens(models: Path, blimps: int = 10, tokens: int = 100) -> dict[str
         [view] = list_sessions(session)
         lost = 2 * blimps - int(view["count"])
         liar.close()
-        session.close()
-    finally:
-        proc.kill()
     return {"forged_token_sessions_lost": lost, "forged_token_resets_ok": round(ok / (2 * blimps), 3)}
 
 
@@ -174,11 +178,7 @@ def frozen_owner(models: Path, blimps: int = 8) -> dict[str, float]:
 
 
 def near_horizon(models: Path, steps: int = 60, chain: int = 32) -> dict[str, float]:
-    port = free_port()
-    proc, _ = spawn_service(models, port, "--model", "gp")
-    try:
-        session = open_session([f"tcp/127.0.0.1:{port}"])
-        time.sleep(0.3)
+    with _service(models, "gp") as (session, _):
         good = EstimatorClient(session, "healthy", timeout=30.0)
         good.reset(MEAN, STD, t=0.0)
         attackers = [EstimatorClient(session, f"chain-{f}", timeout=30.0) for f in ("ekf", "pf")]
@@ -192,7 +192,4 @@ def near_horizon(models: Path, steps: int = 60, chain: int = 32) -> dict[str, fl
             t0 = time.perf_counter()
             good.step(U, [], DT * (k + 1))
             times.append(1e3 * (time.perf_counter() - t0))
-        session.close()
-    finally:
-        proc.kill()
     return {"near_horizon_healthy_p99_ms": round(float(np.percentile(times, 99)), 1)}
