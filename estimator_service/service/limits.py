@@ -88,8 +88,10 @@ class Limits:
         time) is refused before any work, naming the limit: frames each just inside the
         horizon, from any number of blimps, cannot stall the others' steps for long. The burst
         is also the most one catch-up may cost, and one catch-up holds a worker until done:
-        a healthy GP-EKF blimp's step p99 273-311 ms under chains sent to EKF and PF blimps
-        (``bench_service`` ``near_horizon_healthy_p99_ms``); bursts of 0.05 s made it 7-14
+        a healthy GP-EKF blimp's step p99 270-311 ms over the 60 steps after chains are sent
+        to EKF and PF blimps, 8.2 ms over 240 (``bench_service``
+        ``near_horizon_healthy_p99_ms``: the stalls come in the first seconds, while the
+        burst lasts); bursts of 0.05 s made it 7-14
         ms but refused every streamed frame of a particle filter whose catch-up of a few
         steps costs more (0.2-0.5 s per step on a 900-point GP).
     """
