@@ -11,8 +11,7 @@ import numpy as np
 from estimator_service.filters.policy import step_many
 from estimator_service.service.inbox import Job
 from estimator_service.service.limits import gate_for
-from estimator_service.service.protocol import ProtocolError
-from estimator_service.service.session import RepeatedStep
+from estimator_service.service.protocol import ProtocolError, RepeatedStep
 
 if TYPE_CHECKING:  # sessions call this module; it only uses their methods
     from estimator_service.service.session import Session

@@ -32,6 +32,7 @@ __all__ = [
     "Camera",
     "Control",
     "ProtocolError",
+    "RepeatedStep",
     "Reset",
     "Step",
     "decode",
@@ -57,6 +58,15 @@ FloatArray = NDArray[np.float64]
 
 
 MSGPACK = zenoh.Encoding(ENCODING)
+
+
+class RepeatedStep(Exception):
+    """A ``step`` query sent again with the ``seq`` and ``t`` of the session's last step (a
+    client retrying after a time-out): answered with the same reply, nothing recomputed."""
+
+    def __init__(self, reply: bytes) -> None:
+        super().__init__("repeated step")
+        self.reply = reply
 
 
 class ProtocolError(ValueError):

@@ -27,6 +27,7 @@ from estimator_service.service.protocol import (
     MSGPACK,
     PROTOCOL_VERSION,
     ProtocolError,
+    RepeatedStep,
     decode,
     encode,
     encode_belief,
@@ -38,16 +39,7 @@ from estimator_service.service.protocol import (
 from estimator_service.service.workers import WorkerPool
 from estimator_service.system import System
 
-__all__ = ["RepeatedStep", "Session", "SessionSettings"]
-
-
-class RepeatedStep(Exception):
-    """A ``step`` query sent again with the ``seq`` and ``t`` of the session's last step (a
-    client retrying after a time-out): answered with the same reply, nothing recomputed."""
-
-    def __init__(self, reply: bytes) -> None:
-        super().__init__("repeated step")
-        self.reply = reply
+__all__ = ["Session", "SessionSettings"]
 
 
 @dataclass(frozen=True)
