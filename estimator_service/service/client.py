@@ -173,11 +173,10 @@ class EstimatorClient:
                 keys.blimp_key(self.blimp, kind), timeout=self.timeout, target=zenoh.QueryTarget.ALL
             )
         handler = querier.get(payload=payload, encoding=MSGPACK)
-        silent = f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
         try:  # the first reply is the answer: no wait for the query's final message
             r = handler.recv()
         except zenoh.ZError:  # closed without a reply
-            raise NoReply(silent) from None
+            raise NoReply(self._silent(kind)) from None
         if r.ok is None:
             raw_err = r.err.payload.to_bytes()
             try:
@@ -185,7 +184,7 @@ class EstimatorClient:
             except ValueError:
                 text = raw_err.decode("utf-8", "replace")  # zenoh's own errors, e.g. Timeout
                 if text == ZENOH_TIMEOUT:  # a hung service: as no reply (failover retries it)
-                    raise NoReply(f"{silent} ({text})") from None
+                    raise NoReply(f"{self._silent(kind)} ({text})") from None
             error = SessionLost if str(text).startswith(NO_SESSION) else ServiceError
             raise error(f"{kind} for blimp {self.blimp!r}: {text}")
         body = r.ok.payload.to_bytes()
@@ -193,6 +192,9 @@ class EstimatorClient:
             return decode(body)
         self._last = decode_belief(body)
         return self._last
+
+    def _silent(self, kind: str) -> str:
+        return f"no reply to {kind} for blimp {self.blimp!r} within {self.timeout} s"
 
     def _with_failover(self, send: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """``send()``, re-sent while no service answers (``failover``) and after re-creating a

@@ -313,12 +313,11 @@ class Session:
         delay = self.settings.system.control_delay  # a command acts that long after it is sent
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
         gate, none = gate_for(self.settings.limits.gate_p), np.zeros_like(valid)
-        reserved, clock = 0.0, time.perf_counter()
-        if n > 1 and self._step_s:  # the step time is known: refuse an unaffordable catch-up before any work
-            reserved = self._reserve_catch_up(n - 1, self._step_s)
+        known = n > 1 and self._step_s > 0  # the step time is known: refuse a catch-up before any work
+        reserved, clock = self._reserve_catch_up(n - 1, self._step_s) if known else 0.0, time.perf_counter()
         for i in range(n):  # predict to the frame's time with the controls then in force; read at the last
             if i == 1:  # beyond the first step: catching up, within the service's budget
-                if not reserved:
+                if not known:
                     reserved = self._reserve_catch_up(n - 1, time.perf_counter() - clock)
                 clock = time.perf_counter()
             u = self._control_at(self.t + i * dt - delay)
