@@ -295,9 +295,10 @@ def test_a_rosbag2_mcap_log_trains_and_tracks(tmp_path: Path) -> None:
         load_rosbag(bag, system, {"streams": {**mapping["streams"], "gps": bad}})
 
 
+@pytest.mark.parametrize("slice_s", [0.02, 1e-9])  # 1e-9: the catch-up continues over 4 worker turns
 @pytest.mark.parametrize(("delay", "expected"), [(0.25, 0.25), (0.0, 1.0)])
 def test_the_service_applies_the_declared_control_delay_to_controls_at_their_own_times(
-    delay, expected
+    delay, expected, slice_s
 ) -> None:
     """A service session taking controls and frames at their own times acts on a command
     ``control_delay`` after it was sent, as aligning an event log does: p' = p + u dt with
@@ -317,7 +318,8 @@ def test_the_service_applies_the_declared_control_delay_to_controls_at_their_own
     filt = EKF(LinearGaussianPrediction(np.eye(1), np.full((1, 1), 0.125), np.full(1, 1e-12)),
                LinearGaussianObservation(np.eye(1), np.full(1, 1e8)))  # fmt: skip
     published: list = []
-    s = Session("cart", "ekf", "gp", SessionSettings(system, Limits()), lambda *_: filt,
+    settings = SessionSettings(system, Limits(catch_up_slice_s=slice_s))
+    s = Session("cart", "ekf", "gp", settings, lambda *_: filt,
                 lambda kind, p: published.append((kind, decode(p))))  # fmt: skip
     s.submit("reset", encode({"v": V, "seq": 1, "t": 0.0, "mean": [0.0], "std": [1.0]}))
     s.submit("control", encode({"v": V, "seq": 2, "t": 0.0, "u": [1.0]}))

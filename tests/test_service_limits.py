@@ -247,14 +247,7 @@ def test_protocol_document_matches_the_code() -> None:
         assert f"`gpbf/<blimp>/{kind}" in doc, kind
     assert "`gpbf/@service/<id>/sessions`" in doc and "model_version" in doc
     lim = Limits()
-    flags = {
-        "--horizon": lim.horizon_s, "--max-gap-steps": lim.max_gap_steps, "--queue-cap": lim.queue_cap,
-        "--max-controls": lim.max_controls, "--gate-p": lim.gate_p, "--session-ttl": lim.session_ttl_s,
-        "--max-sessions": lim.max_sessions, "--catch-up-share": lim.catch_up_share,
-        "--queue-bytes": lim.queue_bytes, "--total-queue-bytes": lim.total_queue_bytes,
-        "--fence-after": lim.fence_after_s, "--evict-idle": lim.evict_idle_s,
-        "--catch-up-burst": lim.catch_up_burst_s,
-    }  # fmt: skip
+    flags = {flag: getattr(lim, name) for flag, name, _, _ in OPTIONS}  # every limit, with its default
     for flag, value in flags.items():
         shown = str(value) if isinstance(value, int) else format(value, "g")
         assert re.search(rf"`{flag}`[^|]*\| {re.escape(shown)} ", doc), flag
@@ -284,6 +277,45 @@ def test_one_input_costs_at_most_max_gap_steps_predictions_whatever_dt() -> None
     kinds = [(k, m.get("error", "")) for k, m in published]
     assert kinds[0][0] == "belief" and s.steps == 1
     assert kinds[1][0] == "error" and "horizon of 0.05 s" in kinds[1][1], kinds
+
+
+@pytest.mark.parametrize("slice_s", [1e-9, 60.0])
+def test_a_long_catch_up_gives_the_worker_to_other_blimps_between_slices(slice_s) -> None:
+    """One worker, a frame 5,000 predictions ahead for blimp A queued before a step of blimp B:
+    with slices the catch-up gives the worker back after each, so B's step is served (and
+    published) before A's frame finishes; with one 60 s slice B waits for all of it."""
+    from estimator_service.filters import EKF
+    from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+    from estimator_service.service.batching import step_together
+    from estimator_service.service.session import Session, SessionSettings
+    from estimator_service.service.workers import WorkerPool
+    from estimator_service.system import Sensor, System
+
+    system = System("fast", ("p",), ("u",), (Sensor("pos", ("p",)),), 0.001)
+    filt = EKF(LinearGaussianPrediction(np.eye(1), np.ones((1, 1)), np.full(1, 1e-4)),
+               LinearGaussianObservation(np.eye(1), np.full(1, 1e-2)))  # fmt: skip
+    published: list = []
+    pool = WorkerPool(1, step_together)
+    settings = SessionSettings(system, Limits(catch_up_slice_s=slice_s, max_gap_steps=10_000))
+
+    def session(name: str) -> Session:
+        return Session(name, "ekf", "gp", settings, lambda *_: filt,
+                       lambda kind, p: published.append((name, kind)), pool=pool)  # fmt: skip
+
+    a, b = session("A"), session("B")
+    for s in (a, b):
+        s.submit("reset", encode({"v": V, "seq": 1, "t": 0.0, "mean": [0.0], "std": [1.0]}))
+    time.sleep(0.2)
+    a.submit("camera", encode({"v": V, "seq": 2, "t": 5.0, "ellipse": [0.1]}), extra=0)  # 5,000 predictions
+    b.submit("step", encode({"v": V, "seq": 2, "t": 0.001, "u": [0.0], "frames": []}))
+    deadline = time.time() + 5
+    while len(published) < 2 and time.time() < deadline:
+        time.sleep(0.01)
+    pool.stop()
+    assert published == (
+        [("B", "belief"), ("A", "belief")] if slice_s < 1 else [("A", "belief"), ("B", "belief")]
+    )
+    assert a.steps == 1 and a.t == 5.0
 
 
 @pytest.mark.parametrize(

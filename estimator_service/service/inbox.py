@@ -95,6 +95,12 @@ class Inbox:
         if meter and self._meter is not None and n < 0:
             self._meter.release(-n)
 
+    def put_front(self, job: Job) -> None:
+        """Put ``job`` back first (the rest of an input being served; no new bytes: its
+        payload is empty), without the caps."""
+        with self._lock:
+            self._pending.appendleft(job)
+
     def take(self) -> Job | None:
         """The next input, or None (the session then leaves the ready queue)."""
         with self._lock:

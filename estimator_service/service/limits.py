@@ -87,13 +87,15 @@ class Limits:
         would cost more than is available (estimated from the session's own measured step
         time) is refused before any work, naming the limit: frames each just inside the
         horizon, from any number of blimps, cannot stall the others' steps for long. The burst
-        is also the most one catch-up may cost, and one catch-up holds a worker until done:
-        a healthy GP-EKF blimp's step p99 270-311 ms over the 60 steps after chains are sent
-        to EKF and PF blimps, 8.2 ms over 240 (``bench_service``
-        ``near_horizon_healthy_p99_ms``: the stalls come in the first seconds, while the
-        burst lasts); bursts of 0.05 s made it 7-14
-        ms but refused every streamed frame of a particle filter whose catch-up of a few
-        steps costs more (0.2-0.5 s per step on a 900-point GP).
+        is also the most one catch-up may cost (bursts of 0.05 s refused every streamed frame
+        of a particle filter whose catch-up of a few steps costs more: 0.2-0.5 s per step on a
+        900-point GP).
+    catch_up_slice_s
+        A catch-up gives its worker to the other sessions after this many seconds of work and
+        continues on its session's next turn (its predictions kept aside, nothing adopted
+        until the frame is read). Before, one catch-up held its worker to the end: a healthy
+        GP-EKF blimp's step p99 was 270-311 ms over the 60 steps after near-horizon chains
+        were sent to EKF and PF blimps (``bench_service`` ``near_horizon_healthy_p99_ms``).
     """
 
     horizon_s: float = 60.0
@@ -109,6 +111,7 @@ class Limits:
     fence_after_s: float = SERVICE_LEASE_MS / 2000
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
+    catch_up_slice_s: float = 0.02
 
     def __post_init__(self) -> None:
         checks = {
@@ -120,7 +123,7 @@ class Limits:
             "max_sessions": self.max_sessions >= 1,
             "evict_idle_s": self.evict_idle_s >= 0, "fence_after_s": self.fence_after_s > 0,
             "catch_up_share": self.catch_up_share > 0,
-            "catch_up_burst_s": self.catch_up_burst_s > 0,
+            "catch_up_burst_s": self.catch_up_burst_s > 0, "catch_up_slice_s": self.catch_up_slice_s > 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -155,6 +158,8 @@ OPTIONS = (
      "seconds of catch-up predictions per second, over all sessions (frames beyond it: refused)"),
     ("--catch-up-burst", "catch_up_burst_s", checked_float(0.0, 3600.0, low_open=True),
      "seconds of catch-up predictions available at once"),
+    ("--catch-up-slice", "catch_up_slice_s", checked_float(0.0, 60.0, low_open=True),
+     "seconds of catch-up work a frame does before the worker serves other blimps (it resumes next turn)"),
 )  # fmt: skip
 
 

@@ -54,6 +54,22 @@ class SessionSettings:
 
 
 @dataclass
+class _CatchUp:
+    """A camera frame's predictions in progress across worker turns (nothing adopted yet)."""
+
+    frame: Any
+    belief: Any
+    info: StepInfo
+    n: int  # predictions to the frame's time
+    known: bool  # the catch-up was reserved before any work
+    reserved: float  # seconds reserved from the service's catch-up budget
+    done: int = 0  # predictions made
+    spent: float = 0.0  # seconds of catch-up predictions (those beyond the first)
+    first_s: float = 0.0  # seconds of the first prediction (the catch-up's estimate before one is known)
+    work: float = 0.0  # seconds of work in the earlier turns
+
+
+@dataclass
 class Session:
     """State and worker of one blimp.
 
@@ -83,6 +99,7 @@ class Session:
     _step_s: float = 0.0  # this session's measured seconds per prediction step (0: not yet)
     _last_step: tuple[int, float, bytes] | None = None  # (seq, t, reply) of the last step answered
     repeated: int = 0  # step queries answered again from the last reply (clients' retries)
+    _yielded: bool = False  # the job just run gave the worker back (a catch-up in slices)
 
     def __post_init__(self) -> None:
         self._filter = self.make_filter(self.filter_name, self.model_name)
@@ -144,6 +161,9 @@ class Session:
                 return
             self.answer(job, lambda job=job: self.handle(job))
             self.close_job(job)
+            if self._yielded:  # a catch-up gave the worker back: the others' turn
+                self._yielded = False
+                break
         self._reschedule()
 
     def head_step(self) -> Job | None:
@@ -170,6 +190,8 @@ class Session:
         kind, _, query, _ = job
         try:
             reply = compute()
+            if reply is None and kind == "camera":  # a catch-up continues on a later turn
+                return
             if query is not None:
                 query.reply(query.key_expr, reply, encoding=MSGPACK)
             if kind in ("step", "camera"):  # after the reply: the lock-step caller waits less
@@ -199,6 +221,8 @@ class Session:
             return self._status()
         if kind == "step":
             return self._step(payload)
+        if isinstance(extra, _CatchUp):  # a camera frame's catch-up, continued
+            return self._camera(extra.frame, extra)
         msg = decode(payload)
         if kind == "reset":
             return self._reset(parse_reset(msg, self.settings.system.state_dim))
@@ -304,33 +328,49 @@ class Session:
         self._last_step = (seq, t, reply)
         return reply
 
-    def _camera(self, c) -> bytes:
-        t0 = time.perf_counter()
-        self._check_time(c.t)
-        belief, info = self._belief, StepInfo()
-        dt = self.settings.system.dt
-        n = 0 if self.t is None else round((c.t - self.t) / dt)
-        delay = self.settings.system.control_delay  # a command acts that long after it is sent
+    def _camera(self, c, cont: _CatchUp | None = None) -> bytes | None:
+        """A camera frame: predict to its time with the controls then in force, read it at
+        the last step. A catch-up yields the worker every ``catch_up_slice_s`` of work (its
+        predictions so far kept aside, nothing adopted) and continues on the session's next
+        turn, so other blimps' steps wait at most a slice; None until it has finished."""
+        turn = time.perf_counter()
+        if cont is None:
+            self._check_time(c.t)
+            n = 0 if self.t is None else round((c.t - self.t) / self.settings.system.dt)
+            known = n > 1 and self._step_s > 0  # the step time is known: refuse a catch-up before any work
+            reserved = self._reserve_catch_up(n - 1, self._step_s) if known else 0.0
+            cont = _CatchUp(c, self._belief, StepInfo(), n, known, reserved)
+        dt, delay = self.settings.system.dt, self.settings.system.control_delay  # a command acts `delay` late
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
         gate, none = gate_for(self.settings.limits.gate_p), np.zeros_like(valid)
-        known = n > 1 and self._step_s > 0  # the step time is known: refuse a catch-up before any work
-        reserved, clock = self._reserve_catch_up(n - 1, self._step_s) if known else 0.0, time.perf_counter()
-        for i in range(n):  # predict to the frame's time with the controls then in force; read at the last
+        clock = time.perf_counter()
+        for i in range(cont.done, cont.n):  # read at the last step
             if i == 1:  # beyond the first step: catching up, within the service's budget
-                if not known:
-                    reserved = self._reserve_catch_up(n - 1, time.perf_counter() - clock)
+                if not cont.known:
+                    cont.reserved = self._reserve_catch_up(cont.n - 1, cont.first_s)
                 clock = time.perf_counter()
             u = self._control_at(self.t + i * dt - delay)
-            read = valid if i == n - 1 else none
-            belief, info = step_one(self._filter, belief, u, z, read, self._rng, gate)
-        if reserved:
-            spent = time.perf_counter() - clock
-            self.settings.catch_up.settle(reserved, spent)
-            self._step_s = 0.5 * self._step_s + 0.5 * spent / (n - 1)
-        if n == 0:  # a frame at the belief's own time: the update alone
+            read = valid if i == cont.n - 1 else none
+            cont.belief, cont.info = step_one(self._filter, cont.belief, u, z, read, self._rng, gate)
+            cont.done = i + 1
+            if i == 0:
+                cont.first_s = time.perf_counter() - clock
+            if cont.done < cont.n and time.perf_counter() - turn >= self.settings.limits.catch_up_slice_s:
+                cont.spent += time.perf_counter() - clock if i >= 1 else 0.0
+                cont.work += time.perf_counter() - turn
+                self._inbox.put_front(("camera", b"", None, cont))  # the rest on the next turn
+                self._yielded = True
+                return None
+        if cont.n > 1:
+            cont.spent += time.perf_counter() - clock
+        if cont.reserved:
+            self.settings.catch_up.settle(cont.reserved, cont.spent)
+            self._step_s = 0.5 * self._step_s + 0.5 * cont.spent / (cont.n - 1)
+        belief, info = cont.belief, cont.info
+        if cont.n == 0:  # a frame at the belief's own time: the update alone
             belief, info = update_many(self._filter, [belief], z[None], valid[None], gate, self._rng)[0]
         self.gated += info.gated
-        return self._commit(belief, info, c.seq, c.t, t0)
+        return self._commit(belief, info, c.seq, c.t, turn - cont.work)
 
     def _reserve_catch_up(self, steps: int, first_s: float) -> float:
         """Reserve ``steps`` predictions of catch-up work (estimated from this session's step
