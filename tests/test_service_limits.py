@@ -335,9 +335,11 @@ def test_blas_threads_are_shared_out_over_the_workers(requested, workers, cores,
 def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models, flight, unbounded) -> None:
     """Three blimps on the particle filter send chains of camera frames, each 59 s after the
     last (inside the 60 s horizon: about 236 predictions each). The service's catch-up budget
-    refuses what it cannot afford, so a healthy blimp's lock-step steps stay fast; without it
-    (``unbounded``, the budget opened wide) the same chains stall them."""
-    wide = ("--catch-up-share", "64", "--catch-up-burst", "3600") if unbounded else ()
+    refuses what it cannot afford and a catch-up gives its worker back every slice, so a
+    healthy blimp's lock-step steps stay fast; without both (``unbounded``: the budget opened
+    wide, one 60 s slice) the same chains stall them."""
+    opened = ("--catch-up-share", "64", "--catch-up-burst", "3600", "--catch-up-slice", "60")
+    wide = opened if unbounded else ()
     svc = Running(models, "--particles", "8000", *wide)  # frames of ~0.3 s each here
     try:
         good = svc.client("healthy")
@@ -467,6 +469,7 @@ EDGES = {
     "fence_after_s": (1e-9, 0.0),
     "catch_up_share": (1e-9, 0.0),
     "catch_up_burst_s": (1e-9, 0.0),
+    "catch_up_slice_s": (1e-9, 0.0),
 }
 
 
@@ -499,6 +502,7 @@ def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> Non
         "horizon_s": 30.0, "max_gap_steps": 7, "queue_cap": 8, "queue_bytes": 9, "total_queue_bytes": 10,
         "max_controls": 11, "gate_p": 0.25, "session_ttl_s": 12.0, "max_sessions": 13,
         "evict_idle_s": 14.0, "fence_after_s": 15.0, "catch_up_share": 16.0, "catch_up_burst_s": 17.0,
+        "catch_up_slice_s": 18.0,
     }  # fmt: skip
     args = [str(a) for flag, name, _, _ in OPTIONS for a in (flag, given[name])]
     got = limits_from(p.parse_args(args))
