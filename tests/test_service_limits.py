@@ -393,6 +393,9 @@ def test_a_retried_step_is_answered_again_not_applied_twice(models, flight) -> N
             c._beliefs.get(timeout=0.5)
         with pytest.raises(ServiceError, match="not after the session time"):  # another seq at that t
             c.query("step", {**msg, "seq": 8})
+        c.reset(flight.state[0], STD, t=float(flight.t[1]))  # a reset to that time: the old reply is gone
+        with pytest.raises(ServiceError, match="not after the session time"):
+            c.query("step", msg)
     finally:
         svc.proc.kill()
         svc.session.close()

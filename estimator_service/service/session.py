@@ -262,6 +262,7 @@ class Session:
     def _install(self, belief: GaussianBelief, seed: int) -> None:
         self._rng = np.random.default_rng(seed)
         self._belief = self._filter.initial(belief, self._rng)
+        self._last_step = None  # a step from before a reset is never answered again
 
     def _commit(self, belief, info: StepInfo, seq: int, t: float, t0: float) -> bytes:
         """Adopt the new belief (only after everything succeeded) and encode it (the caller

@@ -248,7 +248,7 @@ def run(out: Path, quick: bool, reuse: bool = False) -> dict:
     }
     result = {
         "summary": summary,
-        "consistency": consistency({**rows}),
+        "consistency": consistency(rows),
         "dataset": DATASET,
         "control_delay_s": delay,
         "delay_one_step_rms": delay_table,
