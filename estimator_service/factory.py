@@ -213,20 +213,20 @@ def load_models(
 
 def apply_calibration(
     folder: str | os.PathLike[str], kind: str, pred: PredictionModel, obs: ObservationModel,
-    *, process: bool = True, system: System | None = None,
+    *, process: bool = True, scales: bool = True, system: System | None = None,
 ) -> tuple[PredictionModel, ObservationModel]:  # fmt: skip
     """``pred`` and ``obs`` with the noise scales of ``folder/calibration.json`` for ``kind``
-    (where there are any), the process-variance ceiling (where there is one) and the
-    system's noise floors (where it declares any; ``system`` defaults to the folder's);
-    ``process=False`` leaves the prediction noise as it is."""
+    (where there are any; none with ``scales=False``), the process-variance ceiling (where
+    there is one) and the system's noise floors (where it declares any; ``system`` defaults
+    to the folder's); ``process=False`` leaves the prediction noise as it is."""
     system = read_system(folder) if system is None else system
-    scale = read_noise_scales(folder).get(kind, 1.0) if process else 1.0
-    if process and kind in (per_output := read_process_scales(folder)):
+    scale = read_noise_scales(folder).get(kind, 1.0) if process and scales else 1.0
+    if process and scales and kind in (per_output := read_process_scales(folder)):
         scale = scale * per_output[kind]
     ceiling = read_process_ceiling(folder, pred.state_dim) if process else None
     p_floor, o_floor = noise_floors(system)
     p_floor = p_floor if process else None
-    obs_scale = read_observation_scales(folder).get(kind)
+    obs_scale = read_observation_scales(folder).get(kind) if scales else None
     plain = ceiling is None and p_floor is None and np.all(np.asarray(scale) == 1.0)
     if obs_scale is not None or o_floor is not None:
         obs = NoiseScaledObservation(obs, np.ones(obs.obs_dim) if obs_scale is None else obs_scale, o_floor)
@@ -304,11 +304,23 @@ def make_filter(
 
 
 def build_filter(
-    filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], **options: object
-) -> EKF | UKF | PF:
+    filter_kind: str, model_kind: str, model_dir: str | os.PathLike[str], *, calibrated: bool = True,
+    **options: object,
+) -> EKF | UKF | PF:  # fmt: skip
     """``make_filter(filter_kind, *load_models(model_dir, model_kind), system=..., **options)``
     with the folder's system description and, for an EKF or UKF, its calibrated NIS/dof
-    reference (:func:`adaptation_defaults`)."""
+    reference (:func:`adaptation_defaults`).
+
+    ``calibrated=False``: the same models without the calibration's noise scales (the
+    process-variance ceiling and the system's noise floors kept, as for every filter) and,
+    for an EKF or UKF, without adaptation (it has no calibrated reference): what the
+    calibration is judged against."""
+    if not calibrated:
+        pred, obs = load_models(model_dir, model_kind, calibrated=False)
+        models = apply_calibration(model_dir, model_kind, pred, obs, scales=False)
+        if filter_kind != "pf":
+            options = {"adapt_rate": 0.0, **options}
+        return make_filter(filter_kind, *models, system=read_system(model_dir), **options)
     models = load_models(model_dir, model_kind)
     if filter_kind != "pf":
         options = {**adaptation_defaults(model_dir, model_kind), **options}

@@ -90,7 +90,7 @@ class BlimpEnv(gym.Env[ObsType, NDArray[np.float32]]):
 
     ## Arguments
     ``task`` ("hover" | "waypoint"), ``dt``, ``substeps``, ``camera_rate_hz``,
-    ``n_cameras``, ``pixel_noise``, ``camera_mode`` (``"closed_form"`` or the slow
+    ``n_cameras``, ``camera_knock_deg``, ``pixel_noise``, ``camera_mode`` (``"closed_form"`` or the slow
     ``"rendered"``), ``image_noise``, ``room``, ``params``, ``randomize``, ``reality``
     (``"lab"``, the default, ``"clean"`` or ``"drafty"``) and ``reality_strength`` (all of
     :class:`~gpbf_env.core.WorldConfig`), and ``render_mode`` (``"rgb_array"`` or None).

@@ -28,6 +28,7 @@ from gpbf_env.tasks import TASKS, RewardWeights
 __all__ = ["STATE_NAMES", "WorldConfig", "camera_lag", "check_action", "initial_state", "observe"]
 
 FloatArray = NDArray[np.float64]
+MAX_KNOCK_DEG = 30.0  # the largest camera knock a world accepts (degrees)
 STATE_NAMES = ("x", "y", "z", "roll", "pitch", "yaw", "u", "v", "w", "p", "q", "r")
 
 
@@ -49,6 +50,10 @@ class WorldConfig:
         Frame rate of every camera; frames are staggered between cameras.
     n_cameras
         Number of wall cameras (1-4).
+    camera_knock_deg
+        Pan of the first camera about the vertical (degrees) away from the pose the others
+        are calibrated in, as if it had been knocked; ``cameras`` describes the knocked pose
+        (0: none). A filter calibrated before the knock still uses the old pose.
     pixel_noise
         Standard deviation (px) of the noise on each outline sample (closed-form mode).
     camera_mode
@@ -77,6 +82,7 @@ class WorldConfig:
     substeps: int = 4
     camera_rate_hz: float = 1.0
     n_cameras: int = 2
+    camera_knock_deg: float = 0.0
     pixel_noise: float = 1.0
     camera_mode: str = "closed_form"
     image_noise: float = 4.0
@@ -100,6 +106,9 @@ class WorldConfig:
             raise ValueError(f"camera_rate_hz must be in (0, 1/dt], got {self.camera_rate_hz!r}")
         if self.camera_mode not in ("closed_form", "rendered"):
             raise ValueError(f"camera_mode must be 'closed_form' or 'rendered', got {self.camera_mode!r}")
+        if not (math.isfinite(self.camera_knock_deg) and abs(self.camera_knock_deg) <= MAX_KNOCK_DEG):
+            raise ValueError(f"camera_knock_deg must be in [-{MAX_KNOCK_DEG}, {MAX_KNOCK_DEG}], "
+                             f"got {self.camera_knock_deg!r}")  # fmt: skip
         if self.pixel_noise < 0:
             raise ValueError(f"pixel_noise must be >= 0, got {self.pixel_noise!r}")
         steps = 1.0 / (self.camera_rate_hz * self.dt)
@@ -109,7 +118,7 @@ class WorldConfig:
     @property
     def cameras(self) -> tuple[Camera, ...]:
         """The wall cameras."""
-        return _cameras(self.room, self.camera_rate_hz, self.n_cameras)
+        return _cameras(self.room, self.camera_rate_hz, self.n_cameras, self.camera_knock_deg)
 
     @property
     def semi_axes(self) -> tuple[float, float, float]:
@@ -191,11 +200,22 @@ class WorldConfig:
 _CAMERA_CACHE: dict[tuple, tuple[Camera, ...]] = {}
 
 
-def _cameras(room: tuple[float, float, float], rate: float, n: int) -> tuple[Camera, ...]:
-    key = (room, rate, n)
+def _cameras(
+    room: tuple[float, float, float], rate: float, n: int, knock_deg: float = 0.0
+) -> tuple[Camera, ...]:
+    key = (room, rate, n, knock_deg)
     if key not in _CAMERA_CACHE:  # cameras cache their pixel rays: build them once
-        _CAMERA_CACHE[key] = default_cameras(room, rate, n)
+        cams = default_cameras(room, rate, n)
+        _CAMERA_CACHE[key] = (knocked(cams[0], knock_deg), *cams[1:]) if knock_deg else cams
     return _CAMERA_CACHE[key]
+
+
+def knocked(camera: Camera, degrees: float) -> Camera:
+    """``camera`` panned by ``degrees`` about the world's vertical (its position kept)."""
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # world vectors turned about z
+    return dataclasses.replace(camera, rotation=camera.rotation @ turn.T)
 
 
 def camera_lag(cfg: WorldConfig, params: BlimpParams) -> tuple[float, float]:

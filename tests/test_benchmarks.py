@@ -29,8 +29,9 @@ EXPECTED = {
     },
     "bench_env.py": {"single_env_steps_per_s", "batched64_steps_per_s", "lab_single_env_steps_per_s"},
     "bench_consistency.py": {
-        "within3_min", "pf_within3_min", "failed_runs_max", "nees_ratio_min", "nees_ratio_max",
-        "rms_change_max", "gusty_within3_min",
+        "nees_ratio_min", "nees_ratio_max", "coverage2_min", "coverage2_max", "loglik_gain_min",
+        "rms_change_max", "perturbed_coverage2_min", "targets_met", "within3_min", "pf_within3_min",
+        "failed_runs_max",
     },
     "model_swap.py": {
         "param_ang_velocity_deg_s", "gp_pred_param_obs_ang_velocity_deg_s", "gp_yaw_rate_deg_s",

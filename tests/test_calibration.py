@@ -115,6 +115,11 @@ def _check_nis_reference(flight, rows: slice, folder: Path) -> None:
         config, models = ServiceConfig(folder, adapt_rate=rate), load_models(folder, "param")
         filt = service_filter(config, read_system(folder), "ekf", "param", models)
         assert (filt.adapt_rate, filt.adapt_reference) == (rate, level)
+    plain = build_filter("ekf", "param", folder, calibrated=False)  # what the calibration is judged against
+    raw, _ = load_models(folder, "param", calibrated=False)
+    assert plain.adapt_rate == 0.0 and plain.adapt_reference == 1.0
+    q = np.array([flight.state[rows.start]]), np.array([flight.control[rows.start]])
+    np.testing.assert_allclose(plain.prediction.predict(*q).var, raw.predict(*q).var, rtol=1e-12)
 
 
 @pytest.mark.slow

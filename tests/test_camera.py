@@ -109,3 +109,21 @@ def test_camera_look_at_is_a_rotation() -> None:
     cam = Camera.look_at(np.array([0.0, 0.0, 3.0]), np.array([5.0, 3.0, 1.0]))
     np.testing.assert_allclose(cam.rotation @ cam.rotation.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(cam.rotation) == pytest.approx(1.0)
+
+
+def test_knocked_camera_sees_its_old_axis_off_centre_by_the_pan() -> None:
+    from gpbf_env.core import WorldConfig
+
+    plain, hit = WorldConfig().cameras, WorldConfig(camera_knock_deg=3.0).cameras
+    old_axis = plain[0].position + 4.0 * plain[0].rotation[2]
+    pix, _ = hit[0].project(old_axis, distort=False)
+    old, new = plain[0].rotation[2], hit[0].rotation[2]  # optical axes
+    turn = math.atan2(new[1], new[0]) - math.atan2(old[1], old[0])
+    assert math.degrees(turn) == pytest.approx(3.0) and new[2] == pytest.approx(old[2])  # a pan: tilt kept
+    offset = np.hypot(*(pix - np.array(hit[0].principal_point)))
+    assert offset == pytest.approx(hit[0].focal * math.tan(math.acos(old @ new)), rel=1e-9)
+    assert offset > 15.0  # pixels: a visible shift for a tracker trained on the old pose
+    np.testing.assert_allclose(hit[0].position, plain[0].position)
+    np.testing.assert_allclose(hit[1].rotation, plain[1].rotation)  # the others keep their pose
+    with pytest.raises(ValueError, match="camera_knock_deg"):
+        WorldConfig(camera_knock_deg=float("nan"))
