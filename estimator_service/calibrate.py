@@ -4,11 +4,10 @@ it).
 
 :func:`calibrate_observation` scales each observation output by its mean squared
 standardised residual on the block's frames, :func:`calibrate_process` each state output
-of the prediction model by its one-step residual on the block's transitions;
-:func:`calibrate_noise` then matches each output's process noise to the EKF's errors there
-and widens the noise until the 3-sigma bounds hold as often as a Gaussian belief's
-(:mod:`estimator_service.matching`).
-All write ``calibration.json`` beside the models
+of the prediction model by its one-step residual on the block's transitions (the two that
+cross-fitting uses); :func:`calibrate_noise` then matches each output's process noise to the
+EKF's errors there and widens the noise until the 3-sigma bounds hold as often as a Gaussian
+belief's (:mod:`estimator_service.matching`). All write ``calibration.json`` beside the models
 (:mod:`estimator_service.models.calibration`). Angle outputs and the state dimension come
 from the flight's :class:`~estimator_service.system.System`.
 """
@@ -161,8 +160,9 @@ def calibrate_noise(
     ``rows`` of ``flight`` (held out of every model's training: the truth is known there,
     the models never saw it) and the 3-sigma coverage factor on the process and observation
     noise (:mod:`estimator_service.matching`), starting from :func:`calibrate_process`'s
-    one-step scales; written to ``folder/calibration.json``. Cross-fitting
-    (:mod:`estimator_service.crossfit`) calls it once per fold and combines the folds.
+    one-step scales; written to ``folder/calibration.json``: the in-sample calibration
+    (cross-fitting, :mod:`estimator_service.crossfit`, uses only the one-step scales and
+    chooses by the held-out log-likelihood instead).
 
     Stored as ``noise_scale`` (the geometric mean) times ``process_noise_scale``; returns
     their product per kind ``(n,)``.

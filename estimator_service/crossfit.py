@@ -4,16 +4,16 @@ data it is measured on, and applied to models trained on all of it.
 Folds (:func:`calibration_folds`): with one training flight, blocks spread from its start
 to its end; with several, whole flights held out in turn. For each fold the model kinds are
 fitted again without its rows (by default with their own hyperparameters; see
-``TrainSettings.calibration_refit``), and its rows calibrate them
-(:mod:`estimator_service.calibrate`): observation scales on its frames, one-step process
-scales on its transitions, then per-output matching of the EKF's errors and the factor at
-which the 3-sigma bounds hold as often as a Gaussian belief's
-(:mod:`estimator_service.matching`). The combined scales, times the factor that maximises
-the held-out log-likelihood (or no calibration at all where it would score worse), are
-stored beside the models trained on everything. Holding one block out of the final models
-instead cost accuracy:
-uncalibrated 200-point GP-EKF on a new flight, aggregate RMS 17.6 with the first two minutes
-of an 8-minute flight withheld from training vs 14.7 without.
+``TrainSettings.calibration_refit``), and its rows give the one-step scales
+(:mod:`estimator_service.calibrate`: observation scales on its frames, process scales on its
+transitions, no filter run). The held-out log-likelihood of the truth under the EKF's
+beliefs over all the folds' rows, each tracked with models that never saw them, then
+chooses the scales in two batched passes
+(:func:`~estimator_service.matching.calibrate_by_likelihood`); they (or no calibration at
+all where it would score worse) are stored beside the models trained on everything.
+Holding one block out of the final models instead cost accuracy: uncalibrated 200-point
+GP-EKF on a new flight, aggregate RMS 17.6 with the first two minutes of an 8-minute flight
+withheld from training vs 14.7 without.
 """
 
 from __future__ import annotations
@@ -26,19 +26,26 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.calibrate import calibrate_all, calibration_rows, geometric_mean, write_calibration
+from estimator_service.calibrate import (
+    calibrate_observation,
+    calibrate_process,
+    calibration_rows,
+    geometric_mean,
+    write_calibration,
+)
 from estimator_service.flight import Flight
-from estimator_service.matching import Block, Setting, adaptation_helps, choose_by_likelihood
+from estimator_service.matching import Block, Setting, adaptation_helps, calibrate_by_likelihood
 from estimator_service.models.calibration import read_details, read_process_ceiling
 from estimator_service.store import seal
 from estimator_service.system import System
 
-__all__ = ["MAX_FOLDS", "Fold", "calibration_blocks", "calibration_folds", "cross_fit"]
+__all__ = ["CHOICE_UNITS", "MAX_FOLDS", "Fold", "calibration_blocks", "calibration_folds", "cross_fit"]
 
 FloatArray = NDArray[np.float64]
 
 
 MAX_FOLDS = 12  # calibration folds a training run may ask for
+CHOICE_UNITS = 3  # progress units of one kind's noise choice: two passes, then the adaptation check
 
 
 @dataclass(frozen=True)
@@ -95,15 +102,16 @@ def cross_fit(
     """Calibrate the models in ``out`` from folds: ``fit(folder, flights)`` trains the kinds
     into ``folder``; returns the process-noise scales per kind ``(n,)`` (ones where the
     calibration is not applied). ``tick(label)`` is called as each fold's calibration of a
-    kind, and each kind's final choice, is done.
+    kind, and each of a kind's :data:`CHOICE_UNITS` parts of the choice, is done.
 
-    Each fold's models are fitted without its rows, which then calibrate them
-    (:func:`~estimator_service.calibrate.calibrate_all`: observation scales and process
-    scales matched to the EKF's errors). The folds' scales are combined by geometric mean;
-    one factor, on them or on the models' own process noise alone, is then chosen to maximise the
+    Each fold's models are fitted without its rows, which then give one-step scales
+    (:func:`~estimator_service.calibrate.calibrate_observation`,
+    :func:`~estimator_service.calibrate.calibrate_process`), combined over the folds by
+    geometric mean. Factors on them or on the models' own process noise alone, then each
+    output's process scale moved once by its EKF errors, are chosen to maximise the
     log-likelihood of the truth under the EKF's beliefs over all the held-out blocks, each
     tracked with the models that never saw it
-    (:func:`~estimator_service.matching.choose_by_likelihood`). A calibration that scores a
+    (:func:`~estimator_service.matching.calibrate_by_likelihood`). A calibration that scores a
     lower held-out log-likelihood than the uncalibrated models, or a higher RMS, is not
     applied: the models keep scale 1 and ``calibration.json`` says why (``details.noise``
     ``likelihood``). The coverage at 1, 2 and 3 sigma of both is recorded beside it. The
@@ -114,11 +122,15 @@ def cross_fit(
 
     Before this rule the factor was the largest that kept every fold's truth within 3 sigma
     as often as a Gaussian's (coverage bought by width: NEES/12 0.2-0.4 on held-out lab
-    flights; on a real robot's log process-noise scales of 6,500-15,000)."""
+    flights; on a real robot's log process-noise scales of 6,500-15,000). Before the two
+    passes each fold matched every output's ``e^2 / P`` to 1 in up to
+    :data:`~estimator_service.matching.MATCH_ROUNDS` sequential EKF runs, then one batched
+    pass chose the factor: 0.59 of the README's training run
+    (docs/measurements.md#calibration-cost)."""
     from estimator_service.factory import load_models, noise_floors
 
-    matched: dict[str, list[FloatArray]] = {k: [] for k in kinds}
-    obs: dict[str, list[FloatArray | None]] = {k: [] for k in kinds}
+    start: dict[str, list[FloatArray]] = {k: [] for k in kinds}
+    obs: dict[str, list[FloatArray]] = {k: [] for k in kinds}
     blocks: dict[str, list[Block]] = {k: [] for k in kinds}
     details: list[dict] = []  # each fold's calibration report
     for i, f in enumerate(folds):
@@ -127,28 +139,29 @@ def cross_fit(
         try:
             fit(fold, f.rest(flights))
             seal(fold, system)
-            label = f"calibration fold {i + 1}/{len(folds)}"
-            done = None if tick is None else lambda k, label=label: tick(f"{label}: {k}")
-            res = calibrate_all(flights[f.flight], fold, kinds, rows=f.rows, covering=False, on_kind=done)
+            held = flights[f.flight]
+            seen = calibrate_observation(held, fold, kinds, rows=f.rows)
+            one_step = calibrate_process(held, fold, kinds, rows=f.rows)
             details.append(read_details(fold))
-            for k, r in res.items():
-                matched[k].append(r.matched)
-                obs[k].append(r.observation)
+            for k in kinds:
+                start[k].append(one_step[k])
+                obs[k].append(seen[k])
                 pred, cam = load_models(fold, k, calibrated=False, check=False)
                 ceiling = read_process_ceiling(fold, pred.state_dim)
-                blocks[k].append(Block(flights[f.flight], f.rows, pred, cam, ceiling, *noise_floors(system)))
+                blocks[k].append(Block(held, f.rows, pred, cam, ceiling, *noise_floors(system)))
+                if tick is not None:
+                    tick(f"calibration fold {i + 1}/{len(folds)}: {k}")
         finally:
             shutil.rmtree(fold)
     process, observation, chosen, levels, adaptive = {}, {}, {}, {}, {}
     for k in kinds:
-        scale = geometric_mean(matched[k], axis=0)
-        m = blocks[k][0].observation.obs_dim
-        ob = geometric_mean(obs[k], axis=0) if obs[k][0] is not None else np.ones(m)
-        choice = choose_by_likelihood(blocks[k], scale, ob)
-        matched_family = choice.applied and choice.family == "matched"
-        f = choice.factor if choice.applied else 1.0
-        process[k] = (scale if matched_family else np.ones_like(scale)) * f
-        observation[k] = ob * f if matched_family else np.ones(m)
+        on_pass = None if tick is None else lambda label, k=k: tick(f"calibration: {k}'s {label}")
+        choice = calibrate_by_likelihood(
+            blocks[k], geometric_mean(start[k], axis=0), geometric_mean(obs[k], axis=0), on_pass
+        )
+        n, m = len(start[k][0]), len(obs[k][0])
+        process[k] = choice.process if choice.applied else np.ones(n)
+        observation[k] = choice.observation if choice.applied else np.ones(m)
         plain = choice.chosen if choice.applied else choice.uncalibrated
         adaptive[k], scores = adaptation_helps(blocks[k], Setting(process[k], observation[k]), plain)
         chosen[k] = {"likelihood": {**choice.details(), "adaptive": scores.as_dict()}}

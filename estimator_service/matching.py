@@ -1,22 +1,28 @@
-"""Process-noise matching and 3-sigma coverage on held-out blocks of training flights.
+"""Noise scales judged on held-out blocks of training flights.
 
 A *block* is rows of a flight with models that never saw them (:mod:`estimator_service.crossfit`
-fits one set of models per block). :func:`match_scales` chooses one process-noise scale per
-state output so that, over the given blocks, the EKF's mean normalised squared error
-``e_i^2 / P_ii`` is 1; :func:`coverage_curve` and :func:`covering_factor` then choose the
-factor on both the process and the observation noise at which the truth lies within
-3 sigma on every dimension as often as it would for a Gaussian belief (``0.9973 ** n``).
+fits one set of models per block). Training's calibration,
+:func:`calibrate_by_likelihood`, chooses the scales that maximise the log-likelihood of the
+truth under the EKF's beliefs over the blocks, every candidate of a block tracked in one
+batched run (:func:`held_out_settings`), in two passes: factors on the one-step scales, then
+each output's scale moved once by its ``e_i^2 / P_ii``.
 
-Cross-fitting (:mod:`estimator_service.crossfit`) matches on each held-out block alone and
-combines the blocks' scales; pooling them in one match drove the cameras-pinned position's
-process noise to 260-700 times its one-step value and cost 12 % RMS (200-point GP models,
-8-minute lab flight, four blocks).
+The in-sample calibration of :func:`estimator_service.calibrate.calibrate_noise` keeps the
+older rule: :func:`match_scales` chooses one process-noise scale per state output so that
+the EKF's mean normalised squared error ``e_i^2 / P_ii`` is 1, in up to
+:data:`MATCH_ROUNDS` sequential runs; :func:`coverage_curve` and :func:`covering_factor`
+then choose the factor on both the process and the observation noise at which the truth
+lies within 3 sigma on every dimension as often as it would for a Gaussian belief
+(``0.9973 ** n``). Matched on the blocks pooled, the cameras-pinned position's process noise
+went to 260-700 times its one-step value and cost 12 % RMS (200-point GP models, 8-minute
+lab flight, four blocks); cross-fitting matched each block alone until the two passes
+replaced the matching there.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,12 +41,14 @@ __all__ = [
     "MATCH_TOLERANCE",
     "MIN_LEVERAGE",
     "PROCESS_FACTORS",
+    "REFINE_FACTORS",
     "RMS_TOLERANCE",
     "Block",
     "HeldOut",
     "LikelihoodChoice",
     "Setting",
     "adaptation_helps",
+    "calibrate_by_likelihood",
     "choose_by_likelihood",
     "coverage",
     "coverage_curve",
@@ -66,6 +74,8 @@ COVERAGE_FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0)
 LIKELIHOOD_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0)
 #: factors on the models' own process noise alone (errors that persist over many steps)
 PROCESS_FACTORS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+#: factors on the second pass's matched scales (:func:`calibrate_by_likelihood`)
+REFINE_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 #: a calibration raising the held-out RMS by more than this fraction is not applied
 RMS_TOLERANCE = 0.02
 
@@ -264,17 +274,20 @@ def covering_factor(curve: Sequence[float], state_dim: int) -> float:
 class HeldOut:
     """The plain EKF's scores pooled over held-out blocks: mean log-likelihood of the truth
     per step (``-inf`` when a block's covariance blew up), aggregate RMS (the mean of the
-    system's group RMS values), mean NIS/dof, and per state the fraction of steps within 1,
-    2 and 3 standard deviations ``coverage[k - 1] (n,)``."""
+    system's group RMS values), mean NIS/dof, per state the fraction of steps within 1,
+    2 and 3 standard deviations ``coverage[k - 1] (n,)`` and the mean ``e_i^2 / P_ii``
+    ``e2_over_var (n,)`` (1 for a consistent belief)."""
 
     mll: float
     rms: float
     nis_level: float
     coverage: tuple[tuple[float, ...], ...] = ()
+    e2_over_var: tuple[float, ...] = ()
 
     def as_dict(self) -> dict:
         return {"mll": self.mll, "rms": self.rms, "nis_level": self.nis_level,
-                "coverage": [list(c) for c in self.coverage]}  # fmt: skip
+                "coverage": [list(c) for c in self.coverage],
+                "e2_over_var": list(self.e2_over_var)}  # fmt: skip
 
 
 def held_out(
@@ -308,18 +321,23 @@ def _pooled(runs: Sequence[TrackResult | None], blocks: Sequence[Block]) -> Held
     mll = float(np.sum([r.scores()["mll"] * k for r, k in zip(runs, steps, strict=True)]) / steps.sum())
     err = np.concatenate([r.error for r in runs])
     groups = blocks[0].flight.system.groups
-    by_sigma = coverage_by_sigma(err, np.concatenate([r.cov for r in runs]))
-    cover = tuple(tuple(c.round(4).tolist()) for c in by_sigma.values())
-    return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover)
+    cov = np.concatenate([r.cov for r in runs])
+    cover = tuple(tuple(c.round(4).tolist()) for c in coverage_by_sigma(err, cov).values())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z2 = np.mean(err**2 / np.diagonal(cov, axis1=1, axis2=2), axis=0)
+    z2 = tuple(np.nan_to_num(z2, nan=MATCH_STEP, posinf=MATCH_STEP).tolist())
+    return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover, z2)
 
 
 @dataclass(frozen=True)
 class LikelihoodChoice:
     """The calibration with the highest held-out log-likelihood among those that score
     above the uncalibrated models and raise the RMS by at most :data:`RMS_TOLERANCE`: a
-    factor on the matched process and observation scales (``family`` "matched") or on the
-    models' own process noise alone ("process"); ``applied`` False when none qualifies
-    (``reason`` says why)."""
+    factor on a shape of process and observation scales (``family``: "matched", or in
+    :func:`calibrate_by_likelihood` "one-step" and "matched") or on the models' own process
+    noise alone ("process"), with the chosen scales ``process (n,)`` and ``observation
+    (m,)``; ``applied`` False when none qualifies (``reason`` says why; the scales are then
+    those of the best candidate, not applied)."""
 
     applied: bool
     family: str
@@ -328,6 +346,8 @@ class LikelihoodChoice:
     uncalibrated: HeldOut
     curve: dict[str, float]
     reason: str
+    process: FloatArray | None = None
+    observation: FloatArray | None = None
 
     def details(self) -> dict:
         return {"applied": self.applied, "family": self.family, "factor": self.factor, "reason": self.reason,
@@ -335,23 +355,84 @@ class LikelihoodChoice:
                 "mll_by_factor": self.curve}  # fmt: skip
 
 
+Candidate = tuple[str, float]  # (family, factor)
+Shape = tuple[FloatArray, FloatArray]  # process (n,) and observation (m,) scales
+RAW: Candidate = ("raw", 1.0)  # the uncalibrated models
+
+
 def choose_by_likelihood(
-    blocks: Sequence[Block], scale: FloatArray, obs_scale: FloatArray
+    blocks: Sequence[Block], scale: FloatArray, obs_scale: FloatArray, family: str = "matched"
 ) -> LikelihoodChoice:
-    """Among :data:`LIKELIHOOD_FACTORS` on the matched process scales ``scale (n,)`` and
-    observation scales ``obs_scale (m,)`` together, and :data:`PROCESS_FACTORS` on the
-    ``blocks``' own (raw) process noise alone, the calibration with the highest held-out
-    log-likelihood of the truth that beats the raw (uncalibrated) models' and raises their
-    RMS by at most :data:`RMS_TOLERANCE`. Every candidate of a block is tracked in one
+    """Among :data:`LIKELIHOOD_FACTORS` on the process scales ``scale (n,)`` and
+    observation scales ``obs_scale (m,)`` together (``family``), and :data:`PROCESS_FACTORS`
+    on the ``blocks``' own (raw) process noise alone, the calibration with the highest
+    held-out log-likelihood of the truth that beats the raw (uncalibrated) models' and raises
+    their RMS by at most :data:`RMS_TOLERANCE`. Every candidate of a block is tracked in one
     batched run."""
-    keys = (
-        [("raw", 1.0)]
-        + [("matched", f) for f in LIKELIHOOD_FACTORS]
-        + [("process", f) for f in PROCESS_FACTORS]
-    )
-    settings = [[_setting(b, key, scale, obs_scale) for key in keys] for b in blocks]
-    base, *rest = held_out_settings(blocks, settings)
-    scored = dict(zip(keys[1:], rest, strict=True))
+    candidates = _candidates(scale, obs_scale, family)
+    scored = _score(blocks, candidates)
+    return _choose(scored, candidates, scored.pop(RAW))
+
+
+def calibrate_by_likelihood(
+    blocks: Sequence[Block], start: FloatArray, obs_scale: FloatArray,
+    on_pass: Callable[[str], None] | None = None,
+) -> LikelihoodChoice:  # fmt: skip
+    """Noise scales chosen by the held-out log-likelihood in two batched passes over the
+    blocks. First the candidates of :func:`choose_by_likelihood` on the one-step process
+    scales ``start (n,)`` and the frames' observation scales ``obs_scale (m,)`` (family
+    "one-step"); then, from the best of them, each output's process scale moved once by its
+    pooled ``e_i^2 / P_ii`` (by at most :data:`MATCH_STEP` either way; observation scales
+    kept), times :data:`REFINE_FACTORS` (family "matched"). The best of both passes that
+    beats the raw models without raising their RMS by more than :data:`RMS_TOLERANCE`.
+    ``on_pass(label)`` after each pass.
+
+    It replaced up to :data:`MATCH_ROUNDS` sequential EKF runs per block that matched every
+    output's ``e^2 / P`` to 1 before the choice; one batched pass costs about two single
+    runs (docs/measurements.md#calibration-cost). Moving each output by ``e^2 / P`` raised to
+    the inverse of its leverage (about the square for a state the sensors pin) scored lower
+    on every kind's held-out blocks (200-point models: 26.92 vs 27.17 for gp, 26.93 vs 27.40
+    for sparse) and was dropped."""
+    candidates = _candidates(start, obs_scale, "one-step")
+    scored = _score(blocks, candidates)
+    base = scored.pop(RAW)
+    first = _choose(scored, candidates, base)
+    if on_pass is not None:
+        on_pass("first pass")
+    if not math.isfinite(first.chosen.mll) or first.process is None or first.observation is None:
+        if on_pass is not None:  # every candidate blew up: nothing to move from
+            on_pass("second pass (none)")
+        return first
+    moved = first.process * np.clip(np.asarray(first.chosen.e2_over_var), 1 / MATCH_STEP, MATCH_STEP)
+    refined: dict[Candidate, Shape] = {
+        ("matched", f): (moved * f, first.observation * f) for f in REFINE_FACTORS
+    }
+    scored |= _score(blocks, refined)
+    if on_pass is not None:
+        on_pass("second pass")
+    return _choose(scored, candidates | refined, base)
+
+
+def _candidates(scale: FloatArray, obs_scale: FloatArray, family: str) -> dict[Candidate, Shape]:
+    """The raw models, ``family`` x :data:`LIKELIHOOD_FACTORS` on ``scale (n,)`` and
+    ``obs_scale (m,)``, and "process" x :data:`PROCESS_FACTORS` on the raw process noise."""
+    n, m = len(scale), len(obs_scale)
+    candidates: dict[Candidate, Shape] = {RAW: (np.ones(n), np.ones(m))}
+    candidates |= {(family, f): (scale * f, obs_scale * f) for f in LIKELIHOOD_FACTORS}
+    candidates |= {("process", f): (np.full(n, f), np.ones(m)) for f in PROCESS_FACTORS}
+    return candidates
+
+
+def _score(blocks: Sequence[Block], candidates: dict[Candidate, Shape]) -> dict[Candidate, HeldOut]:
+    """:class:`HeldOut` of every candidate, all of a block's tracked side by side."""
+    settings = [[Setting.of(b, p, o) for p, o in candidates.values()] for b in blocks]
+    return dict(zip(candidates, held_out_settings(blocks, settings), strict=True))
+
+
+def _choose(
+    scored: dict[Candidate, HeldOut], candidates: dict[Candidate, Shape], base: HeldOut
+) -> LikelihoodChoice:
+    """The :class:`LikelihoodChoice` among ``scored`` against the raw models' ``base``."""
     fair = [k for k, v in scored.items() if v.mll > base.mll and v.rms <= base.rms * (1 + RMS_TOLERANCE)]
     best = max(fair or scored, key=lambda k: scored[k].mll)
     top = scored[best]
@@ -363,14 +444,7 @@ def choose_by_likelihood(
         reason = (f"every calibration scoring a higher held-out log-likelihood raised the RMS more than "
                   f"{RMS_TOLERANCE:.0%} (best: {top.rms:.4g} against {base.rms:.4g})")  # fmt: skip
     curve = {f"{family} x{f:g}": v.mll for (family, f), v in scored.items()}
-    return LikelihoodChoice(bool(fair), best[0], best[1], top, base, curve, reason)
-
-
-def _setting(block: Block, key: tuple[str, float], scale: FloatArray, obs_scale: FloatArray) -> Setting:
-    family, f = key
-    if family == "matched":
-        return Setting.of(block, scale * f, obs_scale * f)
-    return Setting.of(block, f, 1.0)  # "process" (and "raw" at 1)
+    return LikelihoodChoice(bool(fair), best[0], best[1], top, base, curve, reason, *candidates[best])
 
 
 def adaptation_helps(blocks: Sequence[Block], setting: Setting, plain: HeldOut) -> tuple[bool, HeldOut]:

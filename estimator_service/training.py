@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.crossfit import calibration_folds, cross_fit
+from estimator_service.crossfit import CHOICE_UNITS, calibration_folds, cross_fit
 from estimator_service.factory import (
     ENHANCED_KINDS,
     MODEL_KINDS,
@@ -100,11 +100,11 @@ class TrainSettings:
         flight, ``calibration_folds`` blocks of ``calibration_seconds`` spread over it; with
         several, each of the first ``calibration_folds`` flights held out whole in turn. Each
         fold's models are fitted without its rows, which then set the observation-noise
-        scales (:func:`~estimator_service.calibrate.calibrate_observation`), the one-step
-        process-noise scales (:func:`~estimator_service.calibrate.calibrate_process`), their
-        per-output match to the EKF's errors and the 3-sigma coverage factor
-        (:func:`~estimator_service.calibrate.calibrate_noise`); the saved models are trained
-        on everything. With ``calibration_refit`` each fold learns its own hyperparameters
+        scales (:func:`~estimator_service.calibrate.calibrate_observation`) and the one-step
+        process-noise scales (:func:`~estimator_service.calibrate.calibrate_process`); the
+        held-out log-likelihood over all the folds' rows chooses the final scales
+        (:func:`~estimator_service.matching.calibrate_by_likelihood`); the saved models are
+        trained on everything. With ``calibration_refit`` each fold learns its own hyperparameters
         (``calibration_folds`` extra fits); without (the default), it keeps the final
         models' and is only conditioned on its data (no optimisation: a few per cent of a
         fit). Chosen by a rule fixed before the run, on simulator flights no report uses
@@ -154,14 +154,15 @@ def progress_units(
 ) -> int:
     """The units of work :func:`train_models` reports as done (``on_progress(label, None)``)
     for these arguments: one per GP kind fitted; with noise calibration, per fold one per
-    kind calibrated (and with ``calibration_refit`` one per GP kind refitted), then one per
-    kind whose noise is chosen. A progress display's total."""
+    kind calibrated (and with ``calibration_refit`` one per GP kind refitted), then per kind
+    the noise choice's two passes and its adaptation check
+    (:func:`~estimator_service.crossfit.cross_fit`). A progress display's total."""
     kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds or ()
     gp = sum(k != "param" for k in kinds)
     folds = len(calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds))
     if not folds:
         return gp
-    return gp + folds * (len(kinds) + (gp if settings.calibration_refit else 0)) + len(kinds)
+    return gp + folds * (len(kinds) + (gp if settings.calibration_refit else 0)) + CHOICE_UNITS * len(kinds)
 
 
 def _check_flights(flights: Sequence[Flight], kinds: Sequence[str]) -> System:

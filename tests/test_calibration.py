@@ -163,7 +163,9 @@ def test_a_calibration_that_scores_worse_than_none_is_not_applied() -> None:
     calibration that cannot beat the uncalibrated models: on a linear-Gaussian system whose
     models carry the true noise, matched scales 10x too wide are refused at every factor;
     models claiming a fifth of the true process noise are corrected (measured: the process
-    noise alone times 4; the matched scale 5 times 1 scores within 0.01)."""
+    noise alone times 4; the matched scale 5 times 1 scores within 0.01); models claiming a
+    twentieth of the velocity's alone score higher after the second pass's per-output move
+    than with the first pass's uniform factors."""
     from estimator_service.flight import make_flight
     from estimator_service.matching import Block, choose_by_likelihood
     from estimator_service.system import System
@@ -200,6 +202,15 @@ def test_a_calibration_that_scores_worse_than_none_is_not_applied() -> None:
     effective = fixed.factor * (5.0 if fixed.family == "matched" else 1.0)  # on the models' own noise
     assert fixed.applied and 2.8 <= effective <= 7.0 and fixed.chosen.mll > fixed.uncalibrated.mll
     assert fixed.chosen.coverage[1][0] > fixed.uncalibrated.coverage[1][0]  # 2-sigma coverage of p
+    # one output wrong: the second pass moves that output's scale by its e^2 / P and scores higher
+    from estimator_service.matching import calibrate_by_likelihood
+
+    wrong = blocks(q * np.array([1.0, 0.05]))
+    passes: list[str] = []
+    first = choose_by_likelihood(wrong, np.ones(2), np.ones(1), family="one-step")
+    both = calibrate_by_likelihood(wrong, np.ones(2), np.ones(1), on_pass=passes.append)
+    assert passes == ["first pass", "second pass"] and both.applied and both.family == "matched"
+    assert both.chosen.mll > first.chosen.mll + 0.03 and both.process[1] > both.process[0]  # 2.233 vs 2.182
 
 
 @pytest.mark.slow
@@ -210,7 +221,7 @@ def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: P
     import estimator_service.training as training
 
     fits, scored = [], []
-    real_fit, real_calibrate = training._fit_models, crossfit.calibrate_all
+    real_fit, real_calibrate = training._fit_models, crossfit.calibrate_process
 
     def fit(out, flights, *args, **kwargs):
         fits.append((out, set(np.concatenate([f.t for f in flights]).tolist())))
@@ -221,7 +232,7 @@ def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: P
         return real_calibrate(flight, folder, kinds, rows=rows, **options)
 
     monkeypatch.setattr(training, "_fit_models", fit)
-    monkeypatch.setattr(crossfit, "calibrate_all", calibrate)
+    monkeypatch.setattr(crossfit, "calibrate_process", calibrate)
     flight = collect_flight(120, seed=5)
     s = TrainSettings(n_points=40, restarts=1, max_iter=3, calibration_seconds=20)
     train_models([flight], tmp_path, kinds=["param"], settings=s)
@@ -498,9 +509,9 @@ def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format
 @pytest.mark.parametrize("refit", [False, True])
 def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> None:
     """Progress counts the fits, every fold's calibration of every kind (and with refitting
-    the folds' fits) and each kind's noise choice: the units reported as done are exactly
-    ``progress_units``, in that order, so a display reaches 100 % when training returns and
-    not before the calibration has run."""
+    the folds' fits) and each kind's noise choice (two passes and the adaptation check): the
+    units reported as done are exactly ``progress_units``, in that order, so a display
+    reaches 100 % when training returns and not before the calibration has run."""
     flight = collect_flight(60, seed=8)
     s = TrainSettings(n_points=30, restarts=1, max_iter=2, calibration_seconds=10, calibration_folds=2,
                       calibration_refit=refit)  # fmt: skip
@@ -511,6 +522,8 @@ def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> N
     folds = [f"calibration fold {i}/2: {k}" for i in (1, 2) for k in ("param", "gp")]
     if refit:
         folds = [item for i in (1, 2) for item in ("calibration: gp refitted", *folds[2 * i - 2 : 2 * i])]
-    assert done == [*fits, *folds, "calibration: param's noise chosen", "calibration: gp's noise chosen"]
+    choices = [f"calibration: {k}'s {part}" for k in ("param", "gp")
+               for part in ("first pass", "second pass", "noise chosen")]  # fmt: skip
+    assert done == [*fits, *folds, *choices]
     assert progress_units([flight], ["param", "gp"], s) == len(done)
     assert progress_units([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0)) == 1
