@@ -145,6 +145,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--quick", action="store_true", help="200-point models (a few minutes)")
     parser.add_argument("--smoke", action="store_true", help="tiny run that only checks it works (tests)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON figures here")
+    parser.add_argument("--models", type=Path, default=None, help="keep the trained models in this folder")
     args = parser.parse_args(argv)
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     train_s, test_s, points, kinds, particles, iters = MODES[mode]
@@ -155,7 +156,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         worlds[name] = collect_flight(test_s, seed=23 + i, env_kwargs=options(p))
     s = TrainSettings(n_points=points, max_iter=iters, sparse_iter=min(120, iters), calibration_seconds=120)
     with tempfile.TemporaryDirectory() as tmp:
-        held = Path(tmp) / "held_out"
+        held = args.models or Path(tmp) / "held_out"
         train_models([train], held, kinds=list(kinds), settings=s)
         calibration = json.loads((held / "calibration.json").read_text())
         res, pf = evaluate(held, kinds, worlds, particles)

@@ -24,10 +24,13 @@ __all__ = [
     "factorable",
     "make_pd",
     "nis_from_cholesky",
+    "sound_posterior",
 ]
 
 FloatArray = NDArray[np.float64]
 DIVERGENCE_P = 1e-9  # an innovation this improbable under chi^2 flags divergence
+#: an updated covariance's eigenvalue below ``-ROUNDING * trace`` is not rounding error
+ROUNDING = 1e-9
 
 
 @dataclass(frozen=True)
@@ -192,6 +195,24 @@ def factorable(cov: FloatArray) -> tuple[FloatArray, FloatArray] | None:
     except np.linalg.LinAlgError:
         return None
     return (c, l) if np.isfinite(c).all() and np.isfinite(l).all() else None
+
+
+def sound_posterior(cov: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """:func:`factorable` of an updated covariance, or None where it is not positive
+    definite beyond rounding: an eigenvalue below ``-ROUNDING * trace`` means the update
+    claimed more than the prior knew (a UKF's ``P - K S K^T`` with sigma points far in a
+    nonlinear model's tails), which no eigenvalue floor repairs honestly. Measured on a
+    held-out lab flight with a knocked camera (200-point GP-UKF): one update left an
+    eigenvalue of -0.22 against a trace of 1.57; floored, the next truth's NEES was 2.3e11."""
+    c = 0.5 * (cov + cov.T)
+    if np.isfinite(c).all():
+        try:
+            return c, np.linalg.cholesky(c)
+        except np.linalg.LinAlgError:
+            lowest = float(np.linalg.eigvalsh(c)[0])
+            if lowest < -ROUNDING * max(float(np.trace(c)), 0.0):
+                return None
+    return factorable(cov)
 
 
 def nis_from_cholesky(ls: FloatArray, r: FloatArray) -> float:

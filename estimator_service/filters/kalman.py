@@ -22,6 +22,7 @@ from estimator_service.filters.common import (
     finite,
     implausible,
     nis_from_cholesky,
+    sound_posterior,
     weighted_mean,
     wrap_periodic,
 )
@@ -41,7 +42,8 @@ def kalman_update(
     """Kalman update from innovation ``r``, its covariance ``s`` and cross-covariance ``pxz``.
 
     Skips the update (flagging divergence) when ``s`` is not positive definite or the
-    result is not finite or cannot be factored (:func:`factorable`); never returns NaN.
+    result is not finite, cannot be factored or is not positive definite beyond rounding
+    (:func:`sound_posterior`); never returns NaN.
     """
     try:
         ls = np.linalg.cholesky(0.5 * (s + s.T))
@@ -54,7 +56,7 @@ def kalman_update(
     else:  # UKF: P - K S K^T
         cov = prior.cov - k @ s @ k.T
     nis = nis_from_cholesky(ls, r)
-    pd = factorable(cov) if finite(mean) else None  # factorable refuses a covariance that overflowed
+    pd = sound_posterior(cov) if finite(mean) else None  # refuses one that overflowed or went indefinite
     if pd is None:
         return prior, StepInfo(nis, len(r), True)
     return GaussianBelief(mean, pd[0]), StepInfo(nis, len(r), implausible(nis, len(r)))
