@@ -159,6 +159,8 @@ def test_an_implausible_frame_is_gated_and_normal_input_still_works(models, flig
             b = c.step(flight.control[k], frames, float(flight.t[k + 1]))
         status = c.status()
         assert status["gated"] == 1 and np.isfinite(status["nis_per_dof_mean"])
+        low, high = status["nis_per_dof_band"]  # where a consistent filter's average falls (95 %)
+        assert 0 < low < 1 < high < 3
         assert np.linalg.norm(b["mean"][:3] - flight.state[12, :3]) < 0.5
     finally:
         assert svc.close() == 0

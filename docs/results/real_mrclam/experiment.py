@@ -166,23 +166,6 @@ def textbook(f: Flight, train: Flight, system: System) -> tuple[dict, np.ndarray
     return figures(r), r.mean, r.cov
 
 
-def uncalibrated(kind: str, models: Path, system: System):
-    """The EKF on ``kind``'s models without the calibration's noise scales (the noise
-    floors and the process-variance ceiling kept, as for every filter)."""
-    from estimator_service.factory import noise_floors
-    from estimator_service.models.calibration import (
-        NoiseScaledObservation,
-        NoiseScaledPrediction,
-        read_process_ceiling,
-    )
-
-    pred, obs = load_models(models, kind, calibrated=False)
-    p_floor, o_floor = noise_floors(system)
-    pred = NoiseScaledPrediction(pred, 1.0, read_process_ceiling(models, system.state_dim), p_floor)
-    obs = NoiseScaledObservation(obs, np.ones(obs.obs_dim), o_floor)
-    return make_filter("ekf", pred, obs, system=system)
-
-
 def dead_reckoning(f: Flight, system: System) -> dict:
     s, out = f.state[0].copy(), []
     for k in range(len(f) - 1):
@@ -227,7 +210,7 @@ def run(out: Path, quick: bool, reuse: bool = False) -> dict:
             print(f"{kind}_{filt}", json.dumps(rows[f"{kind}_{filt}"]), flush=True)
             results[f"{kind}_{filt}"] = r
     for kind in kinds:  # the same models without their noise calibration (floors kept)
-        r = tracked(uncalibrated(kind, models, system), test, system)
+        r = tracked(build_filter("ekf", kind, models, calibrated=False), test, system)
         rows[f"{kind}_ekf_uncalibrated"] = figures(r)
     book, book_mean, book_cov = textbook(test, train, system)
     cross = {}
