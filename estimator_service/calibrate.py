@@ -15,7 +15,7 @@ from the flight's :class:`~estimator_service.system.System`.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +40,6 @@ from estimator_service.models.calibration import (
 __all__ = [
     "NOISE_DETAILS",
     "NoiseCalibration",
-    "calibrate_all",
     "calibrate_noise",
     "calibrate_observation",
     "calibrate_process",
@@ -171,10 +170,8 @@ def calibrate_noise(
 
 
 def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, rounds: int = MATCH_ROUNDS,
-           max_step: float = MATCH_STEP, covering: bool = True,
-           on_kind: Callable[[str], None] | None = None) -> dict[str, NoiseCalibration]:  # fmt: skip
-    """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`;
-    ``on_kind(kind)`` after each kind."""
+           max_step: float = MATCH_STEP) -> dict[str, NoiseCalibration]:  # fmt: skip
+    """:func:`calibrate_noise`, returning each kind's :class:`NoiseCalibration`."""
     from estimator_service.factory import apply_calibration, load_models
 
     res = {}
@@ -184,9 +181,7 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
         start = read_process_scales(folder).get(kind, np.ones(pred.state_dim))
         scales = read_observation_scales(folder).get(kind)
         block = Block(flight, rows, pred, cam, read_process_ceiling(folder, pred.state_dim))
-        res[kind] = noise_from_blocks([block], start, scales, rounds, max_step, covering)
-        if on_kind is not None:
-            on_kind(kind)
+        res[kind] = noise_from_blocks([block], start, scales, rounds, max_step)
     write_calibration(
         folder, {k: v.process for k, v in res.items()}, {k: v.scaled_observation for k, v in res.items()},
         {k: v.details for k, v in res.items()}, {k: v.nis_level for k, v in res.items()},
@@ -197,15 +192,12 @@ def _noise(flight: Flight, folder: Path, kinds: Sequence[str], rows: slice, roun
 
 def noise_from_blocks(
     blocks: Sequence[Block], start: FloatArray, obs_scale: FloatArray | None,
-    rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP, covering: bool = True,
+    rounds: int = MATCH_ROUNDS, max_step: float = MATCH_STEP,
 ) -> NoiseCalibration:  # fmt: skip
-    """Process scales matched from ``start (n,)`` and the covering factor on the blocks
-    (factor 1 without ``covering``: cross-fitting chooses its factor by the held-out
-    log-likelihood instead), with the observation scales ``obs_scale (m,)`` the blocks'
-    models carry (or None)."""
+    """Process scales matched from ``start (n,)`` and the covering factor on the blocks, with
+    the observation scales ``obs_scale (m,)`` the blocks' models carry (or None): the
+    in-sample rule (cross-fitting chooses by the held-out log-likelihood instead)."""
     scale, history = match_scales(blocks, start, rounds=rounds, max_step=max_step)
-    if not covering:
-        return NoiseCalibration(scale, obs_scale, 1.0, {"matching": history})
     curve, level = coverage(blocks, scale)
     factor = covering_factor(curve, len(scale))
     details = {"matching": history, "coverage": curve, "coverage_factor": factor, "nis_level": level}
@@ -234,17 +226,3 @@ def write_calibration(
         nis_reference={k: v for k, v in nis_levels.items() if math.isfinite(v) and v > 0}, adaptive=adaptive,
         **{NOISE_DETAILS: details}, **extra,
     )  # fmt: skip
-
-
-def calibrate_all(
-    flight: Flight, folder: Path, kinds: Sequence[str], *, rows: slice, covering: bool = True,
-    on_kind: Callable[[str], None] | None = None,
-) -> dict[str, NoiseCalibration]:  # fmt: skip
-    """Observation scales, one-step process scales, then their per-output match to the EKF's
-    errors and (with ``covering``) the 3-sigma coverage factor, all on ``rows`` of
-    ``flight`` (which the models in ``folder`` must not have seen); written to
-    ``folder/calibration.json`` and returned per kind. ``on_kind(kind)`` as each kind is
-    done."""
-    calibrate_observation(flight, folder, kinds, rows=rows)
-    calibrate_process(flight, folder, kinds, rows=rows)
-    return _noise(flight, folder, kinds, rows, covering=covering, on_kind=on_kind)

@@ -21,6 +21,7 @@ replaced the matching there.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -325,7 +326,7 @@ def _pooled(runs: Sequence[TrackResult | None], blocks: Sequence[Block]) -> Held
     cover = tuple(tuple(c.round(4).tolist()) for c in coverage_by_sigma(err, cov).values())
     with np.errstate(divide="ignore", invalid="ignore"):
         z2 = np.mean(err**2 / np.diagonal(cov, axis1=1, axis2=2), axis=0)
-    z2 = tuple(np.nan_to_num(z2, nan=MATCH_STEP, posinf=MATCH_STEP).tolist())
+    z2 = tuple(np.nan_to_num(z2, nan=1.0, posinf=MATCH_STEP).tolist())  # 0 / 0: an exact, certain output
     return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover, z2)
 
 
@@ -337,7 +338,8 @@ class LikelihoodChoice:
     :func:`calibrate_by_likelihood` "one-step" and "matched") or on the models' own process
     noise alone ("process"), with the chosen scales ``process (n,)`` and ``observation
     (m,)``; ``applied`` False when none qualifies (``reason`` says why; the scales are then
-    those of the best candidate, not applied)."""
+    those of the best candidate, not applied). ``origin``: for the second pass's "matched"
+    family, the first-pass candidate its scales were moved from (e.g. "one-step x1.4")."""
 
     applied: bool
     family: str
@@ -348,11 +350,12 @@ class LikelihoodChoice:
     reason: str
     process: FloatArray | None = None
     observation: FloatArray | None = None
+    origin: str = ""
 
     def details(self) -> dict:
         return {"applied": self.applied, "family": self.family, "factor": self.factor, "reason": self.reason,
-                "chosen": self.chosen.as_dict(), "uncalibrated": self.uncalibrated.as_dict(),
-                "mll_by_factor": self.curve}  # fmt: skip
+                "from": self.origin, "chosen": self.chosen.as_dict(),
+                "uncalibrated": self.uncalibrated.as_dict(), "mll_by_factor": self.curve}  # fmt: skip
 
 
 Candidate = tuple[str, float]  # (family, factor)
@@ -410,7 +413,9 @@ def calibrate_by_likelihood(
     scored |= _score(blocks, refined)
     if on_pass is not None:
         on_pass("second pass")
-    return _choose(scored, candidates | refined, base)
+    choice = _choose(scored, candidates | refined, base)
+    origin = f"{first.family} x{first.factor:g}" if choice.family == "matched" else ""
+    return dataclasses.replace(choice, origin=origin)
 
 
 def _candidates(scale: FloatArray, obs_scale: FloatArray, family: str) -> dict[Candidate, Shape]:

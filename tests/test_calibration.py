@@ -116,10 +116,11 @@ def _check_nis_reference(flight, rows: slice, folder: Path) -> None:
         filt = service_filter(config, read_system(folder), "ekf", "param", models)
         assert (filt.adapt_rate, filt.adapt_reference) == (rate, level)
     plain = build_filter("ekf", "param", folder, calibrated=False)  # what the calibration is judged against
-    raw, _ = load_models(folder, "param", calibrated=False)
+    raw, raw_cam = load_models(folder, "param", calibrated=False)
     assert plain.adapt_rate == 0.0 and plain.adapt_reference == 1.0
     q = np.array([flight.state[rows.start]]), np.array([flight.control[rows.start]])
     np.testing.assert_allclose(plain.prediction.predict(*q).var, raw.predict(*q).var, rtol=1e-12)
+    np.testing.assert_allclose(plain.observation.observe(q[0]).var, raw_cam.observe(q[0]).var, rtol=1e-12)
 
 
 @pytest.mark.slow
@@ -211,6 +212,19 @@ def test_a_calibration_that_scores_worse_than_none_is_not_applied() -> None:
     both = calibrate_by_likelihood(wrong, np.ones(2), np.ones(1), on_pass=passes.append)
     assert passes == ["first pass", "second pass"] and both.applied and both.family == "matched"
     assert both.chosen.mll > first.chosen.mll + 0.03 and both.process[1] > both.process[0]  # 2.233 vs 2.182
+    assert both.origin == f"{first.family} x{first.factor:g}"  # where the second pass moved from
+    # every candidate's covariance blows up: nothing to move from, nothing applied
+    import estimator_service.matching as matching
+
+    real_track = matching.track_settings
+    matching.track_settings = lambda block, settings, *args: [None] * len(settings)
+    try:
+        passes.clear()
+        none = calibrate_by_likelihood(wrong, np.ones(2), np.ones(1), on_pass=passes.append)
+    finally:
+        matching.track_settings = real_track
+    assert passes == ["first pass", "second pass (none)"] and not none.applied
+    assert none.chosen.mll == -np.inf and "not above the uncalibrated" in none.reason
 
 
 @pytest.mark.slow
@@ -231,14 +245,31 @@ def test_no_calibration_block_is_in_the_data_of_the_models_it_scores(tmp_path: P
         scored.append((folder, set(flight.t[rows].tolist())))
         return real_calibrate(flight, folder, kinds, rows=rows, **options)
 
+    import estimator_service.factory as factory
+
+    loaded, blocks = {}, []  # id of a loaded prediction model -> its folder; the blocks the choice scores
+    real_load, real_choose = factory.load_models, crossfit.calibrate_by_likelihood
+
+    def load(folder, kind, **options):
+        pred, obs = real_load(folder, kind, **options)
+        loaded[id(pred)] = Path(folder)
+        return pred, obs
+
+    def choose(bs, *args, **kwargs):
+        blocks.extend(bs)
+        return real_choose(bs, *args, **kwargs)
+
     monkeypatch.setattr(training, "_fit_models", fit)
     monkeypatch.setattr(crossfit, "calibrate_process", calibrate)
+    monkeypatch.setattr(factory, "load_models", load)
+    monkeypatch.setattr(crossfit, "calibrate_by_likelihood", choose)
     flight = collect_flight(120, seed=5)
     s = TrainSettings(n_points=40, restarts=1, max_iter=3, calibration_seconds=20)
     train_models([flight], tmp_path, kinds=["param"], settings=s)
-    assert fits[0][1] == set(flight.t.tolist()) and len(fits) == 5 and len(scored) == 4
-    for (fold, seen), (folder, block) in zip(fits[1:], scored, strict=True):
+    assert fits[0][1] == set(flight.t.tolist()) and len(fits) == 5 and len(scored) == 4 and len(blocks) == 4
+    for (fold, seen), (folder, block), b in zip(fits[1:], scored, blocks, strict=True):
         assert fold == folder and len(block) == 80 and not seen & block
+        assert loaded[id(b.prediction)] == fold and set(b.flight.t[b.rows].tolist()) == block  # scored unseen
     assert "process_noise_scale" in json.loads((tmp_path / CALIBRATION_FILE).read_text())
 
 

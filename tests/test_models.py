@@ -218,20 +218,22 @@ def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
 
 def test_the_calibration_choices_training_reports_are_read_back_per_kind(tmp_path) -> None:
     """``gpbf train``'s summary: per kind with a cross-fitted calibration, whether it was
-    applied, its family and factor, why, and the held-out log-likelihoods (4 decimals)."""
+    applied, its family and factor (and the first-pass candidate a second-pass choice was
+    moved from), why, and the held-out log-likelihoods (4 decimals)."""
     import json
 
     from estimator_service.models.calibration import CALIBRATION_FILE, calibration_choices, read_details
 
     assert calibration_choices(tmp_path) == {} and read_details(tmp_path) == {}
     chosen = {"applied": True, "family": "matched", "factor": 2.0, "reason": "higher held-out likelihood",
-              "chosen": {"mll": 3.123456}, "uncalibrated": {"mll": 2.98768}}  # fmt: skip
+              "from": "one-step x1.4", "chosen": {"mll": 3.123456},
+              "uncalibrated": {"mll": 2.98768}}  # fmt: skip
     details = {"noise": {"egp": {"likelihood": chosen}, "gp": {"likelihood": None}, "param": "old form"}}
     (tmp_path / CALIBRATION_FILE).write_text(json.dumps({"details": details}))
     assert read_details(tmp_path) == details
     assert calibration_choices(tmp_path) == {
         "egp": {"applied": True, "family": "matched", "factor": 2.0, "reason": "higher held-out likelihood",
-                "heldout_mll": 3.1235, "uncalibrated_mll": 2.9877},
+                "from": "one-step x1.4", "heldout_mll": 3.1235, "uncalibrated_mll": 2.9877},
     }  # fmt: skip
 
 

@@ -23,8 +23,8 @@ particle filter does not adapt.
 
 The reference ``c`` is the calibrated filter's own mean NIS/dof on the held-out
 calibration blocks (``nis_reference`` in ``calibration.json``, measured by
-:func:`estimator_service.calibrate.noise_from_blocks`; 1, a consistent filter's, for models
-without one). The geometric mean of NIS/dof lies below its mean, so in conditions like
+:func:`estimator_service.crossfit.cross_fit` at the chosen noise; 1, a consistent filter's,
+for models without one). The geometric mean of NIS/dof lies below its mean, so in conditions like
 training ``lambda`` stays at its floor of 1 (the calibrated filter, unchanged), and it
 rises only while the innovations stay larger than they were there. With ``c = 1`` it rose
 only once the innovations were consistent *by themselves*, which the calibrated filters'

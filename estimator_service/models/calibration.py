@@ -256,7 +256,8 @@ def read_details(folder: str | os.PathLike[str]) -> dict:
 
 
 def calibration_choices(folder: str | os.PathLike[str]) -> dict[str, dict]:
-    """Per kind, whether its cross-fitted calibration was applied, its factor and the held-out
+    """Per kind, whether its cross-fitted calibration was applied, its family and factor (and
+    for the second pass's scales the candidate they were moved ``from``) and the held-out
     mean log-likelihood with and without it (empty without a cross-fitted calibration)."""
     out = {}
     for kind, d in read_details(folder).get("noise", {}).items():
@@ -264,6 +265,8 @@ def calibration_choices(folder: str | os.PathLike[str]) -> dict[str, dict]:
         if c:
             mll = (round(c["chosen"]["mll"], 4), round(c["uncalibrated"]["mll"], 4))
             keep = {k: c[k] for k in ("applied", "family", "factor", "reason")}
+            if c.get("from"):  # the second pass's scales: moved from this first-pass candidate
+                keep["from"] = c["from"]
             out[kind] = {**keep, "heldout_mll": mll[0], "uncalibrated_mll": mll[1]}
     return out
 
