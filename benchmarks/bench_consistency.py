@@ -226,14 +226,17 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON figures here")
     parser.add_argument("--models", type=Path, default=None, help="keep the trained models in this folder")
     parser.add_argument("--reuse", action="store_true", help="track with the models already in --models")
+    parser.add_argument("--seed-offset", type=int, default=0,
+                        help="other flights (e.g. to decide a design on flights no report uses)")  # fmt: skip
     args = parser.parse_args(argv)
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     train_s, test_s, points, kinds, particles, iters = MODES[mode]
     p = BlimpParams()
-    train = collect_flight(train_s, seed=21)
-    worlds = {"default": collect_flight(test_s, seed=22)}
+    seed = 21 + args.seed_offset
+    train = collect_flight(train_s, seed=seed)
+    worlds = {"default": collect_flight(test_s, seed=seed + 1)}
     for i, (name, options) in enumerate(PERTURBATIONS.items()):
-        worlds[name] = collect_flight(test_s, seed=23 + i, env_kwargs=options(p))
+        worlds[name] = collect_flight(test_s, seed=seed + 2 + i, env_kwargs=options(p))
     s = TrainSettings(n_points=points, max_iter=iters, sparse_iter=min(120, iters), calibration_seconds=120)
     with tempfile.TemporaryDirectory() as tmp:
         held = args.models or Path(tmp) / "held_out"
