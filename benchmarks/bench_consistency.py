@@ -219,6 +219,14 @@ def report(doc: dict, mode: str, judged_kinds: list[str]) -> str:
     return "\n".join(lines)
 
 
+def write_report(out: Path, doc: dict, judged_kinds: list[str]) -> None:
+    """``report.md`` beside ``out``, with ``notes.md`` there (what the figures say, written
+    after the run) appended."""
+    notes = out.parent / "notes.md"
+    extra = "\n" + notes.read_text() if notes.exists() else ""
+    (out.parent / "report.md").write_text(report(doc, doc["summary"]["mode"], judged_kinds) + extra)
+
+
 def main(argv: list[str] | None = None) -> dict[str, float]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="200-point models (a few minutes)")
@@ -226,9 +234,14 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON figures here")
     parser.add_argument("--models", type=Path, default=None, help="keep the trained models in this folder")
     parser.add_argument("--reuse", action="store_true", help="track with the models already in --models")
+    parser.add_argument("--report-only", action="store_true", help="rewrite report.md beside --out from it")
     parser.add_argument("--seed-offset", type=int, default=0,
                         help="other flights (e.g. to decide a design on flights no report uses)")  # fmt: skip
     args = parser.parse_args(argv)
+    if args.report_only and args.out:
+        doc = json.loads(args.out.read_text())
+        write_report(args.out, doc, sorted({key.split("/")[1] for key in doc["runs"]} & set(JUDGED_KINDS)))
+        return doc["summary"]
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     train_s, test_s, points, kinds, particles, iters = MODES[mode]
     p = BlimpParams()
@@ -269,7 +282,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                "runs": {"/".join(k): v for k, v in res.items()}, "pf": pf,
                "calibration": calibration.get("details", {}).get("noise")}  # fmt: skip
         args.out.write_text(json.dumps(doc, indent=1) + "\n")
-        (args.out.parent / "report.md").write_text(report(doc, mode, sorted({k for _, k in rows})))
+        write_report(args.out, doc, sorted({k for _, k in rows}))
         judged_runs = {f"{k.upper()}-{f.upper()}": default_runs[f, k] for f, k in rows}
         plot_reliability(judged_runs, args.out.parent / "reliability.png",
                          title="Reliability on a new flight of the training conditions")  # fmt: skip

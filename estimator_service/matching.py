@@ -79,8 +79,6 @@ PROCESS_FACTORS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
 REFINE_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 #: a calibration raising the held-out RMS by more than this fraction is not applied
 RMS_TOLERANCE = 0.02
-#: choose the candidate nearest the raw models within one standard error of the best
-ONE_STANDARD_ERROR = False
 
 
 @dataclass(frozen=True)
@@ -286,7 +284,6 @@ class HeldOut:
     nis_level: float
     coverage: tuple[tuple[float, ...], ...] = ()
     e2_over_var: tuple[float, ...] = ()
-    block_mll: tuple[float, ...] = ()
 
     def as_dict(self) -> dict:
         return {"mll": self.mll, "rms": self.rms, "nis_level": self.nis_level,
@@ -330,8 +327,7 @@ def _pooled(runs: Sequence[TrackResult | None], blocks: Sequence[Block]) -> Held
     with np.errstate(divide="ignore", invalid="ignore"):
         z2 = np.mean(err**2 / np.diagonal(cov, axis1=1, axis2=2), axis=0)
     z2 = tuple(np.nan_to_num(z2, nan=1.0, posinf=MATCH_STEP).tolist())  # 0 / 0: an exact, certain output
-    per_block = tuple(float(r.scores()["mll"]) for r in runs)
-    return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover, z2, per_block)
+    return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover, z2)
 
 
 @dataclass(frozen=True)
@@ -444,8 +440,6 @@ def _choose(
     """The :class:`LikelihoodChoice` among ``scored`` against the raw models' ``base``."""
     fair = [k for k, v in scored.items() if v.mll > base.mll and v.rms <= base.rms * (1 + RMS_TOLERANCE)]
     best = max(fair or scored, key=lambda k: scored[k].mll)
-    if fair and ONE_STANDARD_ERROR:
-        best = _simplest_near(best, fair, scored, candidates)
     top = scored[best]
     if fair:
         reason = "applied"
@@ -456,31 +450,6 @@ def _choose(
                   f"{RMS_TOLERANCE:.0%} (best: {top.rms:.4g} against {base.rms:.4g})")  # fmt: skip
     curve = {f"{family} x{f:g}": v.mll for (family, f), v in scored.items()}
     return LikelihoodChoice(bool(fair), best[0], best[1], top, base, curve, reason, *candidates[best])
-
-
-def _simplest_near(
-    best: Candidate,
-    fair: Sequence[Candidate],
-    scored: dict[Candidate, HeldOut],
-    candidates: dict[Candidate, Shape],
-) -> Candidate:
-    """Among ``fair`` candidates whose held-out log-likelihood is within one standard error
-    of ``best``'s (the error of the mean of their per-block differences), the one whose
-    scales are nearest the raw models' (smallest sum of ``|log scale|``): the one-standard-
-    error rule of cross-validation (Hastie, Tibshirani and Friedman, The Elements of
-    Statistical Learning, 2009, Sect. 7.10), against the optimism of choosing the best of
-    many candidates on four blocks."""
-    top = np.asarray(scored[best].block_mll)
-    if top.size < 2:
-        return best
-    near = []
-    for k in fair:
-        d = top - np.asarray(scored[k].block_mll)
-        if d.mean() <= d.std(ddof=1) / math.sqrt(d.size):
-            near.append(k)
-    return min(
-        near, key=lambda k: (sum(float(np.abs(np.log(v)).sum()) for v in candidates[k]), -scored[k].mll)
-    )
 
 
 def adaptation_helps(blocks: Sequence[Block], setting: Setting, plain: HeldOut) -> tuple[bool, HeldOut]:
