@@ -1006,3 +1006,4 @@ def test_an_update_that_leaves_an_indefinite_covariance_is_refused() -> None:
     np.testing.assert_allclose(l @ l.T, c, atol=1e-11)
     np.testing.assert_allclose(c, np.diag([1.0, 0.0]), atol=1e-9)
     assert sound_posterior(np.diag([1.0, -1e-3])) is None
+    assert sound_posterior(np.diag([1e-6, -1e-12])) is None  # relative to the trace: scale-free
