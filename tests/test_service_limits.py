@@ -608,3 +608,31 @@ def test_the_services_step_is_the_step_policy_with_its_gate() -> None:
     want, _ = step_one(pf, cloud, u, np.array([0.2, 99.0]), valid, np.random.default_rng(2), gate_for(1e-6))
     np.testing.assert_array_equal(got.particles, want.particles)
     assert info.dof == 1 and not info.gated
+
+
+def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
+    """A catch-up continued on a later turn waits in its session's queue; dropped there when
+    the queue is full, the part of the service's catch-up budget it reserved but did not
+    spend comes back (before: lost until the bucket refilled)."""
+    from estimator_service.filters import EKF, StepInfo
+    from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+    from estimator_service.service.batching import step_together
+    from estimator_service.service.limits import WorkBudget
+    from estimator_service.service.session import Session, SessionSettings, _CatchUp
+    from estimator_service.service.workers import WorkerPool
+    from estimator_service.system import Sensor, System
+
+    system = System("fast", ("p",), ("u",), (Sensor("pos", ("p",)),), 0.001)
+    filt = EKF(LinearGaussianPrediction(np.eye(1), np.ones((1, 1)), np.full(1, 1e-4)),
+               LinearGaussianObservation(np.eye(1), np.full(1, 1e-2)))  # fmt: skip
+    budget = WorkBudget(rate=0.5, burst=2.0, clock=lambda: 0.0)  # no refill during the test
+    pool = WorkerPool(1, step_together)
+    s = Session("A", "ekf", "gp", SessionSettings(system, Limits(), catch_up=budget), lambda *_: filt,
+                lambda *_: None, pool=pool)  # fmt: skip
+    try:
+        assert budget.take(1.5) == pytest.approx(0.5)  # a catch-up reserved 1.5 s, then spent 0.25
+        cont = _CatchUp(None, None, StepInfo(), n=100, known=True, reserved=1.5, done=40, spent=0.25)
+        s._dropped(("camera", b"", None, cont))
+        assert budget.available() == pytest.approx(1.75)  # 0.5 left + 1.25 unspent
+    finally:
+        pool.stop()

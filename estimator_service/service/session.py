@@ -123,6 +123,9 @@ class Session:
             self.pool.schedule(self)
 
     def _dropped(self, job: Job) -> None:
+        cont = job[3]
+        if isinstance(cont, _CatchUp) and cont.reserved:  # a catch-up dropped mid-way: refund what it left
+            self.settings.catch_up.settle(cont.reserved, cont.spent)
         if job[2] is not None:
             lim = self.settings.limits
             text = (f"queue full (a session holds {lim.queue_cap} inputs and {lim.queue_bytes} bytes, "
