@@ -258,7 +258,8 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
     ``reuse`` (a folder of models of the same kinds) the GPs keep that folder's
     hyperparameters and are only conditioned on ``flights``' data (no optimisation). The
     flights' state variances are stored as the process-variance ceiling
-    (:mod:`estimator_service.models.calibration`)."""
+    (:mod:`estimator_service.models.calibration`), and (without ``reuse``) the noise each
+    model claims in ``noise.json``."""
     write_process_ceiling(out, np.concatenate([f.state for f in flights]))
     rng = np.random.default_rng([seed, 0])
     timings: dict[str, float] = {}
@@ -305,7 +306,10 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         else:
             pred = fit(x, y, base_for(name))
         save_gp(pred, out / name)
-        claimed = {"prediction": _claimed_std(pred, x, system.state, system.process_noise_floor)}
+        report = reuse is None  # a calibration fold's models are scored, not reported
+        claimed = (
+            {"prediction": _claimed_std(pred, x, system.state, system.process_noise_floor)} if report else {}
+        )
         for part, name in observation_files(system, kind).items():
             xs, zs = obs_sets[part]
             sensor = _part_sensor(system, part)
@@ -318,7 +322,8 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
             else:
                 obs = _fit_sensor(xs, zs, base_for(name), angles, sensor.periods)
             save_gp(obs, out / name)
-            claimed[part] = _claimed_std(obs, xs, sensor.outputs, sensor.noise_floor)
+            if report:
+                claimed[part] = _claimed_std(obs, xs, sensor.outputs, sensor.noise_floor)
         noise[kind] = claimed
         timings[kind] = time.perf_counter() - t0
         if on_progress:
