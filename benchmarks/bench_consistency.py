@@ -81,7 +81,8 @@ def track(filt, flight: Flight, rng: np.random.Generator) -> tuple[dict[str, obj
         track_flight(filt, flight, rows=slice(a, a + RUN_ROWS), rng=rng)
         for a in range(0, len(flight) - RUN_ROWS + 1, RUN_ROWS)
     ]
-    return pooled(runs), joined(runs)
+    whole = joined(runs)
+    return pooled(runs, whole), whole
 
 
 def joined(runs: list[TrackResult]) -> TrackResult:
@@ -92,20 +93,20 @@ def joined(runs: list[TrackResult]) -> TrackResult:
                        system=runs[0].system)  # fmt: skip
 
 
-def pooled(runs: list[TrackResult]) -> dict[str, object]:
+def pooled(runs: list[TrackResult], whole: TrackResult) -> dict[str, object]:
     """NEES / n and NIS/dof with the 95 % bands of a consistent filter's averages, mean
     log-likelihood, per-dimension coverage at 1, 2, 3 sigma ``(n,)``, within-3-sigma and
-    failed fractions (means over the runs) and aggregate RMS of ``runs``, steps pooled."""
+    failed fractions (means over the runs) and aggregate RMS of ``runs``, steps pooled
+    (``whole``: the runs :func:`joined`)."""
     scores = [r.scores() for r in runs]
-    whole = joined(runs).scores()
-    err = np.concatenate([r.error for r in runs])
-    cover = coverage_by_sigma(err, np.concatenate([r.cov for r in runs]))
-    n = err.shape[1]
+    cover = coverage_by_sigma(whole.error, whole.cov)
+    n = whole.error.shape[1]
     out: dict[str, object] = {k: float(np.mean([s[k] for s in scores])) for k in ("within3", "failed", "mll")}
-    out["nees_ratio"] = whole["nees"] / n
-    out["nees_ratio_band"] = [whole["nees_lo"] / n, whole["nees_hi"] / n]
-    out["nis_per_dof"], out["nis_band"] = whole["nis_per_dof"], [whole["nis_lo"], whole["nis_hi"]]
-    out["rms"] = aggregate_rms(whole, runs[0].system.groups if runs[0].system is not None else None)
+    w = whole.scores()
+    out["nees_ratio"] = w["nees"] / n
+    out["nees_ratio_band"] = [w["nees_lo"] / n, w["nees_hi"] / n]
+    out["nis_per_dof"], out["nis_band"] = w["nis_per_dof"], [w["nis_lo"], w["nis_hi"]]
+    out["rms"] = aggregate_rms(w, whole.system.groups if whole.system is not None else None)
     out.update({f"coverage{k}": [round(float(c), 4) for c in v] for k, v in cover.items()})
     return out
 

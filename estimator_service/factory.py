@@ -315,15 +315,13 @@ def build_filter(
     process-variance ceiling and the system's noise floors kept, as for every filter) and,
     for an EKF or UKF, without adaptation (it has no calibrated reference): what the
     calibration is judged against."""
-    if not calibrated:
-        pred, obs = load_models(model_dir, model_kind, calibrated=False)
-        models = apply_calibration(model_dir, model_kind, pred, obs, scales=False)
-        if filter_kind != "pf":
-            options = {"adapt_rate": 0.0, **options}
-        return make_filter(filter_kind, *models, system=read_system(model_dir), **options)
-    models = load_models(model_dir, model_kind)
+    if calibrated:
+        models, adapt = load_models(model_dir, model_kind), adaptation_defaults(model_dir, model_kind)
+    else:
+        raw = load_models(model_dir, model_kind, calibrated=False)
+        models, adapt = apply_calibration(model_dir, model_kind, *raw, scales=False), {"adapt_rate": 0.0}
     if filter_kind != "pf":
-        options = {**adaptation_defaults(model_dir, model_kind), **options}
+        options = {**adapt, **options}
     return make_filter(filter_kind, *models, system=read_system(model_dir), **options)
 
 

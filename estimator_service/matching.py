@@ -58,6 +58,7 @@ __all__ = [
     "held_out_settings",
     "leverage",
     "match_scales",
+    "mean_e2_over_var",
     "nis_level",
     "track_block",
     "track_settings",
@@ -197,7 +198,7 @@ def match_scales(
         if not runs:  # every block blew up: keep the last scales that tracked
             history.append({"nees": None, "e2_over_var": None})
             return (last[0] if last is not None else scale), history
-        z2 = np.concatenate([r.error**2 / np.diagonal(r.cov, axis1=1, axis2=2) for r in runs]).mean(axis=0)
+        z2 = mean_e2_over_var(runs)
         z2 = np.nan_to_num(z2, nan=max_step, posinf=max_step)
         nees = float(np.mean([r.scores()["nees"] for r in runs]))
         history.append({"nees": nees, "e2_over_var": z2.tolist()})
@@ -205,6 +206,13 @@ def match_scales(
         last = (scale, z2)
         scale = scale * np.clip(z2**power, 1 / max_step, max_step)
     return scale, history
+
+
+def mean_e2_over_var(runs: Sequence[TrackResult]) -> FloatArray:
+    """Per state output, ``e_i^2 / P_ii`` averaged over every step of ``runs`` ``(n,)`` (1 for
+    a consistent belief; NaN or inf where a variance is 0, which each caller maps)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.concatenate([r.error**2 / np.diagonal(r.cov, axis1=1, axis2=2) for r in runs]).mean(axis=0)
 
 
 def _converged(z2: list[float]) -> bool:
@@ -322,11 +330,13 @@ def _pooled(runs: Sequence[TrackResult | None], blocks: Sequence[Block]) -> Held
     mll = float(np.sum([r.scores()["mll"] * k for r, k in zip(runs, steps, strict=True)]) / steps.sum())
     err = np.concatenate([r.error for r in runs])
     groups = blocks[0].flight.system.groups
-    cov = np.concatenate([r.cov for r in runs])
-    cover = tuple(tuple(c.round(4).tolist()) for c in coverage_by_sigma(err, cov).values())
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z2 = np.mean(err**2 / np.diagonal(cov, axis1=1, axis2=2), axis=0)
-    z2 = tuple(np.nan_to_num(z2, nan=1.0, posinf=MATCH_STEP).tolist())  # 0 / 0: an exact, certain output
+    cover = tuple(
+        tuple(c.round(4).tolist())
+        for c in coverage_by_sigma(err, np.concatenate([r.cov for r in runs])).values()
+    )
+    z2 = tuple(
+        np.nan_to_num(mean_e2_over_var(runs), nan=1.0, posinf=MATCH_STEP).tolist()
+    )  # 0 / 0: exact, certain
     return HeldOut(mll, aggregate_rms(group_rms(err, groups), groups), nis_level(runs), cover, z2)
 
 
