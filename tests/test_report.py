@@ -186,3 +186,11 @@ def test_fig3_log_likelihood_is_the_papers_over_successful_runs_only() -> None:
     table = fig3_table(runs, [rep(10.0, 3, 0.25), rep(20.0, 1, 0.75)])["points"]["40"]
     assert table["ekf"]["mll_successful"][0] == pytest.approx((3 * 10.0 + 20.0) / 4)
     assert table["ekf"]["failed"][0] == pytest.approx(0.5) and math.isnan(table["ukf"]["mll_successful"][0])
+    # a resumed run's repeats cached before the measure beside a new one: no KeyError, the old is skipped
+    old = {
+        f: {k: v for k, v in row.items() if "successful" not in k} for f, row in rep(20.0, 1, 0.75).items()
+    }
+    mixed = fig3_table(runs, [rep(10.0, 3, 0.25), old])["points"]["40"]
+    assert mixed["ekf"]["mll_successful"][0] == pytest.approx(10.0) and mixed["ekf"]["failed"][
+        0
+    ] == pytest.approx(0.5)

@@ -612,9 +612,11 @@ def test_the_services_step_is_the_step_policy_with_its_gate() -> None:
 
 def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
     """A catch-up continued on a later turn waits in its session's queue; dropped there when
-    the queue is full, the part of the service's catch-up budget it reserved but did not
-    spend comes back (before: lost until the bucket refilled)."""
-    from estimator_service.filters import EKF, StepInfo
+    the queue is full, or failing in a prediction, the part of the service's catch-up budget
+    it reserved but did not spend comes back, once (before: lost until the bucket refilled)."""
+    from types import SimpleNamespace
+
+    from estimator_service.filters import EKF, GaussianBelief, StepInfo
     from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
     from estimator_service.service.batching import step_together
     from estimator_service.service.limits import WorkBudget
@@ -634,5 +636,23 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
         cont = _CatchUp(None, None, StepInfo(), n=100, known=True, reserved=1.5, done=40, spent=0.25)
         s._dropped(("camera", b"", None, cont))
         assert budget.available() == pytest.approx(1.75)  # 0.5 left + 1.25 unspent
+        s._dropped(("camera", b"", None, cont))  # settled once only
+        assert budget.available() == pytest.approx(1.75)
+        # a catch-up whose prediction fails is rejected and refunds what it did not spend too
+        assert budget.take(1.5) == pytest.approx(0.25)
+
+        class Failing(EKF):
+            def predict(self, *args, **kwargs):
+                raise RuntimeError("prediction failed")
+
+            predict_many = predict
+
+        s._filter, s.t = Failing(filt.prediction, filt.observation), 0.0
+        frame = SimpleNamespace(t=0.1, camera=0, ellipse=[0.1], seq=2)
+        cont = _CatchUp(frame, GaussianBelief(np.zeros(1), np.eye(1)), StepInfo(), n=100, known=True,
+                        reserved=1.5, done=40, spent=0.25)  # fmt: skip
+        with pytest.raises(RuntimeError, match="prediction failed"):
+            s._camera(frame, cont)
+        assert budget.available() == pytest.approx(1.5, abs=0.01) and cont.reserved == 0.0
     finally:
         pool.stop()

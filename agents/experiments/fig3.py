@@ -119,7 +119,11 @@ def fig3_table(
     out: dict = {"points": {}, "pseudo": {}}
     for (curve, size), res in sorted(by_point.items(), key=lambda kv: (kv[0][0], kv[0][1])):
         out[curve][str(size)] = {
-            f: {**mean_sd([x[f] for x in res]), "mll_successful": _successful_mll(res, f)} for f in FILTERS
+            f: {
+                **mean_sd([{m: x[f][m] for m in MEASURES} for x in res]),
+                "mll_successful": _successful_mll(res, f),
+            }
+            for f in FILTERS
         }
     return out
 

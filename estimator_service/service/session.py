@@ -123,9 +123,8 @@ class Session:
             self.pool.schedule(self)
 
     def _dropped(self, job: Job) -> None:
-        cont = job[3]
-        if isinstance(cont, _CatchUp) and cont.reserved:  # a catch-up dropped mid-way: refund what it left
-            self.settings.catch_up.settle(cont.reserved, cont.spent)
+        if isinstance(job[3], _CatchUp):  # a catch-up dropped mid-way: refund what it left
+            self._settle(job[3])
         if job[2] is not None:
             lim = self.settings.limits
             text = (f"queue full (a session holds {lim.queue_cap} inputs and {lim.queue_bytes} bytes, "
@@ -338,7 +337,9 @@ class Session:
         """A camera frame: predict to its time with the controls then in force, read it at
         the last step. A catch-up yields the worker every ``catch_up_slice_s`` of work (its
         predictions so far kept aside, nothing adopted) and continues on the session's next
-        turn, so other blimps' steps wait at most a slice; None until it has finished."""
+        turn, so other blimps' steps wait at most a slice or one prediction, whichever is
+        longer (a particle filter's prediction can take longer than a slice); None until it
+        has finished."""
         turn = time.perf_counter()
         if cont is None:
             self._check_time(c.t)
@@ -350,33 +351,45 @@ class Session:
         z, valid = self.settings.system.frames({} if c.ellipse is None else {c.camera: c.ellipse})
         gate, none = gate_for(self.settings.limits.gate_p), np.zeros_like(valid)
         clock = time.perf_counter()
-        for i in range(cont.done, cont.n):  # read at the last step
-            if i == 1:  # beyond the first step: catching up, within the service's budget
-                if not cont.known:
-                    cont.reserved = self._reserve_catch_up(cont.n - 1, cont.first_s)
-                clock = time.perf_counter()
-            u = self._control_at(self.t + i * dt - delay)
-            read = valid if i == cont.n - 1 else none
-            cont.belief, cont.info = step_one(self._filter, cont.belief, u, z, read, self._rng, gate)
-            cont.done = i + 1
-            if i == 0:
-                cont.first_s = time.perf_counter() - clock
-            if cont.done < cont.n and time.perf_counter() - turn >= self.settings.limits.catch_up_slice_s:
-                cont.spent += time.perf_counter() - clock if i >= 1 else 0.0
-                cont.work += time.perf_counter() - turn
-                self._inbox.put_front(("camera", b"", None, cont))  # the rest on the next turn
-                self._yielded = True
-                return None
+        try:
+            for i in range(cont.done, cont.n):  # read at the last step
+                if i == 1:  # beyond the first step: catching up, within the service's budget
+                    if not cont.known:
+                        cont.reserved = self._reserve_catch_up(cont.n - 1, cont.first_s)
+                    clock = time.perf_counter()
+                u = self._control_at(self.t + i * dt - delay)
+                read = valid if i == cont.n - 1 else none
+                cont.belief, cont.info = step_one(self._filter, cont.belief, u, z, read, self._rng, gate)
+                cont.done = i + 1
+                if i == 0:
+                    cont.first_s = time.perf_counter() - clock
+                if cont.done < cont.n and time.perf_counter() - turn >= self.settings.limits.catch_up_slice_s:
+                    cont.spent += time.perf_counter() - clock if i >= 1 else 0.0
+                    cont.work += time.perf_counter() - turn
+                    self._inbox.put_front(("camera", b"", None, cont))  # the rest on the next turn
+                    self._yielded = True
+                    return None
+        except Exception:  # the frame is rejected: what the catch-up reserved and did not spend comes back
+            cont.spent += time.perf_counter() - clock if cont.done > 1 else 0.0
+            self._settle(cont)
+            raise
         if cont.n > 1:
             cont.spent += time.perf_counter() - clock
         if cont.reserved:
-            self.settings.catch_up.settle(cont.reserved, cont.spent)
             self._step_s = 0.5 * self._step_s + 0.5 * cont.spent / (cont.n - 1)
+        self._settle(cont)
         belief, info = cont.belief, cont.info
         if cont.n == 0:  # a frame at the belief's own time: the update alone
             belief, info = update_many(self._filter, [belief], z[None], valid[None], gate, self._rng)[0]
         self.gated += info.gated
         return self._commit(belief, info, c.seq, c.t, turn - cont.work)
+
+    def _settle(self, cont: _CatchUp) -> None:
+        """Replace what ``cont`` reserved from the service's catch-up budget by what it spent
+        (once: at its end, its failure, or its drop at the queue cap)."""
+        if cont.reserved:
+            self.settings.catch_up.settle(cont.reserved, cont.spent)
+            cont.reserved = 0.0
 
     def _reserve_catch_up(self, steps: int, first_s: float) -> float:
         """Reserve ``steps`` predictions of catch-up work (estimated from this session's step
