@@ -113,16 +113,25 @@ class ModelSpec:
     jacobian
         Optional callable of the same arguments returning ``d f / d x`` ``(M, n, n)`` (or
         ``d h / d x`` ``(M, size, n)``); central differences otherwise.
+    noise
+        Prediction models only, optional: a callable of the same arguments returning the
+        *shape* of the process noise's standard deviation per step ``(M, n)`` (> 0), such as
+        a term growing with the commanded speed plus a constant. Training fits one factor
+        per state component by maximum likelihood; the ``param`` kind's noise is then
+        ``factor**2 * shape**2`` at each state and control, and the enhanced kinds' GPs
+        model the residual divided by the shape (so their noise keeps it). Without one the
+        noise is constant.
     """
 
     function: str
     params: tuple[tuple[str, float], ...] = ()
     fixed: tuple[tuple[str, float], ...] = ()
     jacobian: str | None = None
+    noise: str | None = None
 
     def __post_init__(self) -> None:
         where = f"model {self.function!r}"
-        for ref in (self.function, self.jacobian):
+        for ref in (self.function, self.jacobian, self.noise):
             if ref is not None and not _is_reference(ref):
                 raise DescriptionError(
                     f"{where}: {ref!r} is not 'package.module:attribute' or an entry-point name"
@@ -137,19 +146,22 @@ class ModelSpec:
             raise DescriptionError(f"{where}: {sorted(clash)} both in 'params' and in 'fixed'")
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "function": self.function, "params": dict(self.params), "fixed": dict(self.fixed),
             "jacobian": self.jacobian,
         }  # fmt: skip
+        return out if self.noise is None else out | {"noise": self.noise}
 
     @classmethod
     def from_dict(cls, d: object, where: str) -> ModelSpec:
         if not isinstance(d, Mapping) or "function" not in d:
             raise DescriptionError(f"{where}: a model needs a JSON object with 'function'")
-        unknown = set(d) - {"function", "params", "fixed", "jacobian"}
+        unknown = set(d) - {"function", "params", "fixed", "jacobian", "noise"}
         if unknown:
             raise DescriptionError(f"{where}: unknown model field(s) {sorted(unknown)}")
-        return cls(str(d["function"]), d.get("params") or (), d.get("fixed") or (), d.get("jacobian"))
+        return cls(
+            str(d["function"]), d.get("params") or (), d.get("fixed") or (), d.get("jacobian"), d.get("noise")
+        )
 
 
 def _is_reference(ref: object) -> bool:
@@ -416,6 +428,12 @@ class System:
             raise DescriptionError(
                 f"{where}: 'parametric' ({self.parametric!r}) and your own models exclude each other"
             )
+        for t in types.values():
+            if t.model is not None and t.model.noise is not None:
+                raise DescriptionError(
+                    f"{where}: sensor type {t.name!r}: 'noise' shapes the prediction model's noise only; "
+                    "a sensor's noise is its readings' spread (at least its 'noise_floor')"
+                )
         layouts: dict[str, tuple] = {}
         for s in self.sensors:
             if s.type is None:

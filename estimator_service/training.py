@@ -38,15 +38,13 @@ from estimator_service.factory import (
 from estimator_service.files import atomic_write_text
 from estimator_service.flight import Flight
 from estimator_service.gp import (
-    CircularGP,
-    EnhancedGP,
     Progress,
     fit_circular,
     fit_enhanced,
     fit_exact,
     fit_hetero,
     fit_sparse,
-    load_gp,
+    load_innermost_gp,
     save_gp,
 )
 from estimator_service.models.calibration import write_process_ceiling
@@ -58,6 +56,7 @@ from estimator_service.user_models import (
     fit_user_models,
     load_user_models,
     save_user_models,
+    user_models,
 )
 
 #: per kind and model part, each output's claimed noise std beside its floor (see _claimed_std)
@@ -282,7 +281,7 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
     angles = tuple(system.circle_inputs or ())
     noise: dict[str, dict] = {}
     if param is not None:
-        noise["param"] = _parametric_std(out, system)
+        noise["param"] = _parametric_std(out, system, inp)
     for kind in (k for k in kinds if k != "param"):
         t0 = time.perf_counter()
 
@@ -302,7 +301,10 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         name = f"prediction_{kind}.npz"
         if kind in ENHANCED_KINDS:
             mean = param.change
-            pred = fit_enhanced(x, y, lambda q, mean=mean: mean(q[:, :n], q[:, n:]), fit, base=base_for(name))
+            pred = fit_enhanced(
+                x, y, lambda q, mean=mean: mean(q[:, :n], q[:, n:]), fit, base=base_for(name),
+                scale_function=param.noise_shape,
+            )  # fmt: skip
         else:
             pred = fit(x, y, base_for(name))
         save_gp(pred, out / name)
@@ -342,13 +344,16 @@ def _named_std(std: FloatArray, names: Sequence[str], floor: Sequence[float]) ->
     return {n: {"std": float(s), "floor": float(f)} for n, s, f in zip(names, std, floor, strict=True)}
 
 
-def _parametric_std(out: Path, system: System) -> dict[str, dict]:
-    """The user's fitted parametric models' noise std (their residuals', at least the floor)
-    as :func:`_claimed_std` reports it; empty for the blimp's models."""
+def _parametric_std(out: Path, system: System, inp: FloatArray) -> dict[str, dict]:
+    """The user's fitted parametric models' noise std (their residuals', at least the floor;
+    with a noise shape, the median over the prediction inputs ``inp (T, n + k)``) as
+    :func:`_claimed_std` reports it; empty for the blimp's models."""
     if system.parametric is not None:
         return {}
     fitted = load_user_models(out / USER_MODELS_FILE, system)
-    parts = {"prediction": (fitted.prediction.noise_var, system.state, system.process_noise_floor)}
+    n = system.state_dim
+    pred = user_models(fitted, system)[0].predict(inp[:, :n], inp[:, n:]).var
+    parts = {"prediction": (np.median(pred, axis=0), system.state, system.process_noise_floor)}
     for part, ks in observation_parts(system).items():
         sensor = system.sensors[ks[0]]
         parts[part] = (fitted.sensor_types[sensor.type].noise_var, sensor.outputs, sensor.noise_floor)
@@ -401,13 +406,7 @@ def _fit_parametric(
 def _conditioner(path: Path) -> Callable[[FloatArray, FloatArray], object]:
     """A base fitter that conditions the innermost GP saved at ``path`` on new data, keeping
     its hyperparameters (:meth:`~estimator_service.gp.ExactGP.conditioned`)."""
-    model = load_gp(path, mean_function=_no_mean)  # only the residual GP is kept
-    inner = model.residual if isinstance(model, EnhancedGP) else model
-    return (inner.inner if isinstance(inner, CircularGP) else inner).conditioned
-
-
-def _no_mean(q: FloatArray) -> FloatArray:
-    raise AssertionError("a conditioner's parametric mean is the fold's own")  # never called
+    return load_innermost_gp(path).conditioned
 
 
 def _fit_sensor(xs: FloatArray, zs: FloatArray, base: Callable, angles: tuple[int, ...],

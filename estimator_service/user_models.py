@@ -21,7 +21,9 @@ Contracts (``M`` rows, every array float64):
 
 ``p`` maps each parameter name (fitted and fixed) to a float. The noise variance of each
 output is the mean squared residual on the training log, never below the description's
-noise floor.
+noise floor. A prediction model may also name a noise shape ``g(x, u, p, dt) -> (M, n)``
+(standard deviations up to one factor per state component, > 0): its noise variance is then
+``factor**2 * g**2``, the factor fitted by maximum likelihood (``mean(residual**2 / g**2)``).
 """
 
 from __future__ import annotations
@@ -151,7 +153,9 @@ class FittedModel:
     values
         Every parameter (fitted and fixed) by name.
     noise_var: (P,)
-        Per output, the mean squared residual on the training log, at least the floor.
+        Per output, the mean squared residual on the training log, at least the floor; with
+        a noise shape (:attr:`ModelSpec.noise`), the factor squared that multiplies the
+        shape's square (the floor is then applied to the product, when filtering).
     """
 
     spec: ModelSpec
@@ -196,7 +200,7 @@ class _FittedFunctions:
     fitted: FittedModel
 
     def __post_init__(self) -> None:
-        _, _ = self.function, self.jacobian  # an unresolvable reference fails here, by name
+        _ = self.function, self.jacobian, self.noise  # an unresolvable reference fails here, by name
 
     @functools.cached_property
     def function(self) -> Callable[..., Any]:
@@ -207,11 +211,17 @@ class _FittedFunctions:
         ref = self.fitted.spec.jacobian
         return None if ref is None else resolve(ref)
 
+    @functools.cached_property
+    def noise(self) -> Callable[..., Any] | None:
+        ref = self.fitted.spec.noise
+        return None if ref is None else resolve(ref)
+
 
 @dataclass(frozen=True, eq=False)
 class UserPrediction(_FittedFunctions):
     """The user's prediction model as a :class:`~estimator_service.models.base.PredictionModel`:
-    the mean state change ``f(x, u) - x`` (angles wrapped), the fitted noise variance."""
+    the mean state change ``f(x, u) - x`` (angles wrapped), the fitted noise variance (times
+    the noise shape's square where the model names one)."""
 
     system: System
 
@@ -227,6 +237,13 @@ class UserPrediction(_FittedFunctions):
         """``f(x (M, n), u (M, k))``: the next states ``(M, n)``."""
         args = (x, u, self.fitted.values, self.system.dt)
         return _call(self.function, self.fitted.spec.function, x.shape, *args)
+
+    def noise_shape(self, x: FloatArray, u: FloatArray) -> FloatArray | None:
+        """The noise shape ``g(x (M, n), u (M, k))`` ``(M, n)``, None without one."""
+        if self.noise is None:
+            return None
+        ref, values = self.fitted.spec.noise or "", self.fitted.values
+        return _noise_shape(self.noise, ref, x, u, values, self.system.dt)
 
     def change(self, x: FloatArray, u: FloatArray) -> FloatArray:
         """Mean change ``(M, n)``, angles wrapped."""
@@ -245,7 +262,18 @@ class UserPrediction(_FittedFunctions):
             periods = np.asarray(self.system.state_periods)
             nxt, jn = wrapped_jacobian(lambda q, rows: self.next_state(q, uu[rows]), x, periods)
             mean, j = self.system.state_error(nxt, x), jn - np.eye(n)
-        return ModelOutput(mean, np.broadcast_to(self.fitted.noise_var, mean.shape), j)
+        shape = self.noise_shape(x, uu) if var else None
+        noise = self.fitted.noise_var if shape is None else self.fitted.noise_var * shape * shape
+        return ModelOutput(mean, np.broadcast_to(noise, mean.shape), j)
+
+
+def _noise_shape(fn: Callable[..., Any], ref: str, x: FloatArray, u: FloatArray,
+                 values: Mapping[str, float], dt: float) -> FloatArray:  # fmt: skip
+    """A noise shape's values ``(M, n)`` at states ``x`` and controls ``u``: all > 0."""
+    g = _call(fn, ref, x.shape, x, u, values, dt)
+    if not np.all(g > 0):
+        raise UserModelError(f"model {ref!r} returned a noise standard deviation <= 0")
+    return g
 
 
 @dataclass(frozen=True, eq=False)
@@ -346,7 +374,12 @@ def fit_prediction(system: System, x: FloatArray, u: FloatArray, x_next: FloatAr
         return system.state_error(_call(fn, spec.function, x.shape, x, u, vals, system.dt), x_next)
 
     values = _least_squares(spec, lambda vals: error(vals) / scale)
-    return FittedModel(spec, values, _noise_var(error(values), system.process_noise_floor))
+    err = error(values)
+    if spec.noise is None:
+        return FittedModel(spec, values, _noise_var(err, system.process_noise_floor))
+    g = _noise_shape(resolve(spec.noise), spec.noise, x, u, values, system.dt)
+    factor2 = np.maximum(np.mean((err / g) ** 2, axis=0), np.finfo(np.float64).tiny)
+    return FittedModel(spec, values, factor2)
 
 
 def fit_sensor_type(

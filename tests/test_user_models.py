@@ -40,6 +40,13 @@ def range_bearing(x, c, p):
 
 def broken(x, c, p):
     return x[:, :1]
+
+def speed_noise(x, u, p, dt):
+    pos = np.abs(u[:, 0]) * dt + 0.001
+    return np.stack([pos, pos, np.abs(u[:, 1]) * dt + 0.001], axis=1)
+
+def no_noise(x, u, p, dt):
+    return np.zeros_like(x)
 """
 
 
@@ -205,6 +212,70 @@ def test_user_model_jacobians_wrap_angle_outputs_at_the_cut(rover: System, train
     np.testing.assert_allclose(jac, np.tile(expected, (2, 1)), atol=1e-5)
 
 
+SPEED_NOISE = 0.1  # the robot's process noise std per step: SPEED_NOISE * speed_noise(x, u)
+
+
+def drive_noisy(system: System, seed: int, steps: int) -> Flight:
+    """A robot whose process noise grows with its speed, standing still a third of the time."""
+    unicycle = resolve("rover_model:unicycle")
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps) * system.dt
+    moving = (np.sin(0.05 * t) > -0.5).astype(float)
+    u = np.stack([moving * (0.5 + 0.5 * np.sin(0.3 * t)), moving * 0.8 * np.sin(0.11 * t)], axis=1)
+    x = np.zeros((steps, 3))
+    for k in range(steps - 1):
+        std = SPEED_NOISE * resolve("rover_model:speed_noise")(x[k : k + 1], u[k : k + 1], TRUE, system.dt)[0]
+        x[k + 1] = unicycle(x[k : k + 1], u[k : k + 1], TRUE, system.dt)[0] + std * rng.standard_normal(3)
+        x[k + 1, 2] = (x[k + 1, 2] + math.pi) % (2 * math.pi) - math.pi
+    rb = resolve("rover_model:range_bearing")
+    z = np.concatenate(
+        [rb(x, {"lx": np.full(steps, lx), "ly": np.full(steps, ly)}, TRUE) for lx, ly in LANDMARKS], axis=1
+    )
+    return make_flight(system, t, x, u, z, rng.random((steps, len(LANDMARKS))) < 0.3)
+
+
+def test_a_noise_shape_is_fitted_and_kept_by_the_enhanced_gps(rover: System, tmp_path: Path) -> None:
+    """A prediction model naming its noise shape: training fits its factor (the robot's
+    0.1), the ``param`` noise follows the shape, and the EGP's residual GP keeps it (a
+    standing robot's predicted noise far below a moving one's); without the shape both are
+    constant."""
+    d = description()
+    d["prediction_model"]["noise"] = "rover_model:speed_noise"
+    shaped = System.from_dict(d)
+    flight = drive_noisy(shaped, 3, 1200)
+    folders = {}
+    for name, system in (("shaped", shaped), ("plain", rover)):
+        folders[name] = tmp_path / name
+        train_models([relabel(flight, system)], folders[name], settings=SETTINGS, kinds=["param", "egp"])
+    factor2 = load_user_models(folders["shaped"] / "parametric.json", shaped).prediction.noise_var
+    np.testing.assert_allclose(np.sqrt(factor2), SPEED_NOISE, rtol=0.1)
+    x = np.zeros((2, 3))
+    u = np.array([[0.0, 0.0], [1.0, 0.8]])  # standing, then fast
+    for kind in ("param", "egp"):
+        shaped_var = load_models(folders["shaped"], kind, calibrated=False)[0].predict(x, u).var
+        plain_var = load_models(folders["plain"], kind, calibrated=False)[0].predict(x, u).var
+        assert np.all(shaped_var[1] > 20 * shaped_var[0]), (kind, shaped_var)
+        assert np.all(plain_var[1] < 3 * plain_var[0]), (kind, plain_var)
+    edited = folders["shaped"] / "system.json"  # the shape removed after training: refused by name
+    doc = json.loads(edited.read_text())
+    del doc["prediction_model"]["noise"]
+    edited.write_text(json.dumps(doc))
+    with pytest.raises(Exception, match="noise shape"):
+        load_models(folders["shaped"], "egp", calibrated=False, check=False)
+
+
+def test_a_noise_shape_at_or_below_zero_is_refused_by_name(rover: System, tmp_path: Path) -> None:
+    d = description()
+    d["prediction_model"]["noise"] = "rover_model:no_noise"
+    system = System.from_dict(d)
+    with pytest.raises(
+        UserModelError, match=r"'rover_model:no_noise' returned a noise standard deviation <= 0"
+    ):
+        train_models(
+            [relabel(drive(rover, 1, 200), system)], tmp_path / "m", settings=SETTINGS, kinds=["param"]
+        )
+
+
 @pytest.mark.parametrize(
     ("edit", "message"),
     [
@@ -219,6 +290,11 @@ def test_user_model_jacobians_wrap_angle_outputs_at_the_cut(rover: System, train
         ),
         (lambda d: d["prediction_model"].update(fixed={"k_v": 1.0}), "both in 'params' and in 'fixed'"),
         (lambda d: d.update(process_noise_floor=[0.1, -1, 0]), "'process_noise_floor' needs 3"),
+        (
+            lambda d: d["sensor_types"][0]["model"].update(noise="rover_model:speed_noise"),
+            "sensor type 'rb': 'noise' shapes the prediction model's noise only",
+        ),
+        (lambda d: d["prediction_model"].update(noise="a b"), "'a b' is not 'package.module:attribute'"),
     ],
 )
 def test_a_malformed_description_names_the_field(edit, message: str) -> None:

@@ -13,7 +13,7 @@ from estimator_service.gp.enhanced import EnhancedGP, fit_enhanced, numeric_jaco
 from estimator_service.gp.exact import ExactGP, fit_exact
 from estimator_service.gp.hetero import HeteroscedasticGP, fit_hetero
 from estimator_service.gp.hyper import exact_nll
-from estimator_service.gp.io import FORMAT_VERSION, ModelFileError, load_gp, save_gp
+from estimator_service.gp.io import FORMAT_VERSION, ModelFileError, load_gp, load_innermost_gp, save_gp
 from estimator_service.gp.sparse import SparseGP, fit_sparse, sparse_nll
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "fit_hetero",
     "fit_sparse",
     "load_gp",
+    "load_innermost_gp",
     "numeric_jacobian",
     "save_gp",
     "sparse_nll",

@@ -4,8 +4,9 @@ Layout: ``__format__`` (int, :data:`FORMAT_VERSION`), ``__kind__`` (``exact``, `
 ``hetero``, ``enhanced`` or ``circular``) and the model's arrays; nested models (hetero:
 ``main/``, ``noise/``; enhanced: ``residual/``; circular: ``inner/``) use key prefixes.
 Files are written to a temporary name in the same folder and renamed, so a crash never
-leaves a half-written model. An enhanced GP's parametric mean function is code, not data:
-pass it to :func:`load_gp`.
+leaves a half-written model. An enhanced GP's parametric mean function (and scale function,
+where it was fitted with one: the array ``scaled`` says so) is code, not data: pass it to
+:func:`load_gp`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import os
 import zipfile
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +27,7 @@ from estimator_service.gp.exact import ExactGP
 from estimator_service.gp.hetero import HeteroscedasticGP
 from estimator_service.gp.sparse import SparseGP
 
-__all__ = ["FORMAT_VERSION", "ModelFileError", "load_gp", "save_gp"]
+__all__ = ["FORMAT_VERSION", "ModelFileError", "load_gp", "load_innermost_gp", "save_gp"]
 
 FORMAT_VERSION = 1
 Arrays = dict[str, NDArray]
@@ -59,6 +61,8 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
         out |= _to_arrays(model.main, f"{prefix}main/") | _to_arrays(model.noise, f"{prefix}noise/")
     elif isinstance(model, EnhancedGP):
         out |= _to_arrays(model.residual, f"{prefix}residual/")
+        if model.scale_function is not None:
+            out[f"{prefix}scaled"] = np.ones(1)
     elif isinstance(model, CircularGP):
         out[f"{prefix}angle_inputs"] = np.asarray(model.angle_inputs, dtype=np.float64)
         out[f"{prefix}angle_output"] = np.array([model.angle_output, model.period], dtype=np.float64)
@@ -99,7 +103,18 @@ def _scalers(data: Arrays, prefix: str, where: str, d: int, p: int) -> tuple[Sca
     return Scaler(xm, xsd), Scaler(ym, ysd)
 
 
-def _from_arrays(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> GPModel:
+class _Code(NamedTuple):
+    """The code an enhanced GP needs to load: its mean, mean Jacobian and scale functions."""
+
+    mean: MeanFunction | None = None
+    jacobian: JacobianFunction | None = None
+    scale: MeanFunction | None = None
+
+
+_NO_CODE = _Code()
+
+
+def _from_arrays(data: Arrays, prefix: str, where: str, code: _Code = _NO_CODE) -> GPModel:
     kind_key = f"{prefix}__kind__"
     if kind_key not in data:
         raise ModelFileError(f"{where}: missing '{kind_key}' (not a gpbf GP file?)")
@@ -134,27 +149,39 @@ def _from_arrays(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> GP
         xs, ys = _scalers(data, prefix, where, d, p)
         return SparseGP(xs, ys, theta, z, beta, lm, lb)
     if kind == "hetero":
-        main = _from_arrays(data, f"{prefix}main/", where, None, None)
-        noise = _from_arrays(data, f"{prefix}noise/", where, None, None)
+        main = _from_arrays(data, f"{prefix}main/", where)
+        noise = _from_arrays(data, f"{prefix}noise/", where)
         if not isinstance(main, ExactGP) or not isinstance(noise, ExactGP):
             raise ModelFileError(f"{where}: heteroscedastic parts must be exact GPs")
         _expect(main.output_dim == noise.output_dim, where, "main and noise GPs differ in outputs")
         return HeteroscedasticGP(main, noise)
     if kind == "enhanced":
-        if mean_fn is None:
-            raise ModelFileError(f"{where}: an enhanced GP needs its parametric mean_function to load")
-        return EnhancedGP(mean_fn, _from_arrays(data, f"{prefix}residual/", where, None, None), mean_jac)
+        return _enhanced(data, prefix, where, code)
     if kind == "circular":
-        return _circular(data, prefix, where, mean_fn, mean_jac)
+        return _circular(data, prefix, where, code)
     raise ModelFileError(f"{where}: unknown model kind {kind!r}")
 
 
-def _circular(data: Arrays, prefix: str, where: str, mean_fn, mean_jac) -> CircularGP:
+def _enhanced(data: Arrays, prefix: str, where: str, code: _Code) -> EnhancedGP:
+    if code.mean is None:
+        raise ModelFileError(f"{where}: an enhanced GP needs its parametric mean_function to load")
+    scaled = f"{prefix}scaled" in data
+    if scaled != (code.scale is not None):
+        raise ModelFileError(
+            f"{where}: fitted {'with' if scaled else 'without'} a noise shape, loaded "
+            f"{'without' if scaled else 'with'} one: the description's 'noise' changed since "
+            "training; retrain"
+        )
+    residual = _from_arrays(data, f"{prefix}residual/", where)
+    return EnhancedGP(code.mean, residual, code.jacobian, code.scale)
+
+
+def _circular(data: Arrays, prefix: str, where: str, code: _Code) -> CircularGP:
     angles = _get(data, f"{prefix}angle_inputs", 1, where)
     meta = _get(data, f"{prefix}angle_output", 1, where)
     _expect(meta.shape == (2,), where, f"angle_output must hold (column, period), got {meta.shape}")
     out, period = meta
-    inner = _from_arrays(data, f"{prefix}inner/", where, mean_fn, mean_jac)
+    inner = _from_arrays(data, f"{prefix}inner/", where, code)
     a = tuple(int(v) for v in angles)
     d, p = inner.input_dim - len(a), inner.output_dim - (1 if out >= 0 else 0)
     _expect(all(0 <= i < d for i in a) and len(set(a)) == len(a), where, f"angle_inputs {a} with d = {d}")
@@ -167,14 +194,32 @@ def load_gp(
     *,
     mean_function: MeanFunction | None = None,
     mean_jacobian: JacobianFunction | None = None,
+    scale_function: MeanFunction | None = None,
 ) -> GPModel:
-    """Load a model written by :func:`save_gp`.
+    """Load a model written by :func:`save_gp` (an enhanced GP with its functions, see
+    :class:`~estimator_service.gp.enhanced.EnhancedGP`).
 
     Raises
     ------
     ModelFileError
         Truncated or unreadable file, wrong format version, missing or inconsistent arrays.
     """
+    data, where = _read(path)
+    return _from_arrays(data, "", where, _Code(mean_function, mean_jacobian, scale_function))
+
+
+def load_innermost_gp(path: str | os.PathLike[str]) -> GPModel:
+    """The innermost GP of a model :func:`save_gp` wrote (an enhanced GP's residual, a
+    circular GP's inner GP), which needs no code to load: what a refit on other data keeps."""
+    data, where = _read(path)
+    prefix = ""
+    while str(data.get(f"{prefix}__kind__")) in ("enhanced", "circular"):
+        prefix += "residual/" if str(data[f"{prefix}__kind__"]) == "enhanced" else "inner/"
+    return _from_arrays(data, prefix, where)
+
+
+def _read(path: str | os.PathLike[str]) -> tuple[Arrays, str]:
+    """A model file's arrays (checked for size and format version) and its name for errors."""
     where = f"model file {os.fspath(path)!r}"
     try:
         with np.load(path, allow_pickle=False) as npz:
@@ -194,4 +239,4 @@ def load_gp(
     version = int(fmt)
     if version != FORMAT_VERSION:
         raise ModelFileError(f"{where}: format version {version}, this build reads {FORMAT_VERSION}")
-    return _from_arrays(data, "", where, mean_function, mean_jacobian)
+    return data, where
