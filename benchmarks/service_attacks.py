@@ -32,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from service_tools import SERVE_ARGS
 
 from estimator_service.service import keys
 from estimator_service.service.client import (
@@ -56,7 +57,7 @@ def _service(models: Path, model: str) -> Iterator[tuple[object, str]]:
     """One new ``gpbf serve`` of ``model``: a zenoh session connected to it and its endpoint;
     both closed on exit."""
     port = free_port()
-    proc, _ = spawn_service(models, port, "--model", model)
+    proc, _ = spawn_service(models, port, "--model", model, *SERVE_ARGS)
     try:
         endpoint = f"tcp/127.0.0.1:{port}"
         session = open_session([endpoint])
@@ -125,12 +126,14 @@ def _fleet(models: Path, n: int) -> Iterator[tuple[list, object]]:
     try:
         if "ready" not in router.stdout.readline():  # the router prints one line, or exits
             raise RuntimeError("the zenoh router did not start")
-        join = ("--connect", f"tcp/127.0.0.1:{port}", "--model", "sparse")
+        join = ("--connect", f"tcp/127.0.0.1:{port}", "--model", "sparse", *SERVE_ARGS)
         started = [spawn_service(models, free_port(), *join) for _ in range(n)]
         session = open_session([f"tcp/127.0.0.1:{port}"])
         try:
             deadline = time.time() + 20
-            while time.time() < deadline and not _fleet_of(session, n):
+            while not _fleet_of(session, n):
+                if time.time() > deadline:
+                    raise RuntimeError(f"the {n} services did not form one fleet within 20 s")
                 time.sleep(0.2)
             yield started, session
         finally:

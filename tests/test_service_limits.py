@@ -245,6 +245,36 @@ def test_a_service_announces_its_short_lease_unless_the_user_config_sets_one(tmp
     assert Limits().fence_after_s == SERVICE_LEASE_MS / 2000
 
 
+def test_the_freeze_fence_never_outlasts_the_lease_in_effect(models, tmp_path: Path) -> None:
+    """A ``--zenoh-config`` announcing a 600 ms lease: the others drop a frozen service after
+    0.6 s, so it fences after 0.3 s, not the default 1 s (a freeze of 0.6-1 s would otherwise
+    keep the stale sessions of blimps the fleet moved), and its watchdog ticks within a
+    quarter of that; a longer lease keeps the configured fence."""
+    from estimator_service.service.limits import WATCH_TICK_S, fence_and_tick
+    from estimator_service.service.server import EstimatorService, ServiceConfig
+
+    assert fence_and_tick(1.0, 0.6) == (0.3, 0.075)
+    assert fence_and_tick(1.0, 10.0) == (1.0, WATCH_TICK_S)
+    own = tmp_path / "short.json5"
+    own.write_text("{ transport: { link: { tx: { lease: 600 } } } }")
+    svc = EstimatorService(
+        ServiceConfig(models, listen=(f"tcp/127.0.0.1:{free_port()}",), zenoh_config_file=own)
+    )
+    try:
+        assert svc.fence_s == pytest.approx(0.3) and svc._watch_tick == pytest.approx(0.075)
+        svc._tick -= 0.5  # a freeze of 0.5 s, between the lease's half and the default fence
+        svc._sessions["b"] = _StubSession()
+        svc._fence_if_frozen()
+        assert svc.fenced == 1 and not svc._sessions
+    finally:
+        svc.close()
+
+
+class _StubSession:
+    def stop(self) -> None:
+        pass
+
+
 def test_protocol_document_matches_the_code() -> None:
     doc = (ROOT / "docs" / "protocol.md").read_text()
     assert f"# Estimator service protocol, version {PROTOCOL_VERSION}" in doc

@@ -15,6 +15,7 @@ __all__ = [
     "DEFAULT_ENDPOINT",
     "SERVICE_LEASE_MS",
     "describe",
+    "lease_in_effect_s",
     "serve_until_stopped",
     "zenoh_config",
     "zenoh_message",
@@ -43,6 +44,11 @@ def _plain(m: re.Match) -> str:
 def zenoh_message(exc: BaseException) -> str:
     """A zenoh error as a user reads it: without Rust source paths and internal structures."""
     return _WRAPPED.sub(_plain, _RUST_PLACE.sub("", str(exc))).strip()
+
+
+def lease_in_effect_s(cfg: zenoh.Config) -> float:
+    """The link lease ``cfg`` announces, in seconds (the others drop a peer silent this long)."""
+    return float(json.loads(cfg.get_json(_LEASE_KEY))) / 1000.0
 
 
 def zenoh_config(

@@ -26,10 +26,12 @@ from estimator_service.service.config import SERVICE_LEASE_MS
 
 __all__ = [
     "OPTIONS",
+    "WATCH_TICK_S",
     "ControlLog",
     "Limits",
     "WorkBudget",
     "add_limit_options",
+    "fence_and_tick",
     "gate_for",
     "gated",
     "gated_step",
@@ -79,7 +81,8 @@ class Limits:
         meanwhile, and their clients re-create each session from their last belief instead of
         meeting the stale one. Half the lease a service announces
         (:data:`~estimator_service.service.config.SERVICE_LEASE_MS`), after which the others
-        see the frozen service gone.
+        see the frozen service gone; a service never waits longer than half the lease in
+        effect (:func:`fence_and_tick`: a ``--zenoh-config`` with a shorter lease shortens it).
     catch_up_share, catch_up_burst_s
         Catching up, the predictions a camera frame needs beyond the first to reach its time,
         may use at most ``catch_up_share`` seconds of filtering per second over all sessions,
@@ -161,6 +164,19 @@ OPTIONS = (
     ("--catch-up-slice", "catch_up_slice_s", checked_float(0.0, 60.0, low_open=True),
      "seconds of catch-up work a frame does before the worker serves other blimps (it resumes next turn)"),
 )  # fmt: skip
+
+
+#: the freeze watchdog's longest tick (shorter where the fence is short, see fence_and_tick)
+WATCH_TICK_S = 0.25
+
+
+def fence_and_tick(fence_after_s: float, lease_s: float) -> tuple[float, float]:
+    """The freeze fence a service applies and its watchdog's tick: ``fence_after_s``, but at
+    most half the link lease in effect ``lease_s`` (the others drop a frozen service after
+    the lease, so its blimps may have moved), and a tick of at most a quarter of the fence so
+    that a healthy watchdog's late tick never looks like a freeze."""
+    fence = min(fence_after_s, lease_s / 2.0)
+    return fence, min(WATCH_TICK_S, fence / 4.0)
 
 
 class WorkBudget:

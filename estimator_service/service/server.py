@@ -33,12 +33,19 @@ from estimator_service.service.config import (
     DEFAULT_ENDPOINT,
     SERVICE_LEASE_MS,
     describe,
+    lease_in_effect_s,
     serve_until_stopped,
     zenoh_config,
     zenoh_message,
 )
 from estimator_service.service.inbox import ByteMeter
-from estimator_service.service.limits import Limits, WorkBudget, add_limit_options, limits_from
+from estimator_service.service.limits import (
+    Limits,
+    WorkBudget,
+    add_limit_options,
+    fence_and_tick,
+    limits_from,
+)
 from estimator_service.service.membership import Membership
 from estimator_service.service.protocol import MAX_PAYLOAD, MSGPACK, NO_SESSION, PROTOCOL_VERSION, encode
 from estimator_service.service.session import Session, SessionSettings
@@ -50,9 +57,7 @@ if TYPE_CHECKING:
     from estimator_service.filters import EKF, PF, UKF
     from estimator_service.models.base import ObservationModel, PredictionModel
 
-__all__ = ["WATCH_TICK_S", "EstimatorService", "ServiceConfig", "main", "service_filter", "zenoh_config"]
-
-WATCH_TICK_S = 0.25  # the freeze watchdog's tick (see Limits.fence_after_s)
+__all__ = ["EstimatorService", "ServiceConfig", "main", "service_filter", "zenoh_config"]
 
 
 @dataclass(frozen=True)
@@ -106,6 +111,9 @@ class EstimatorService:
         self._build_filter(config.filter, config.model)  # fail fast on missing model files
         cfg_file = config.zenoh_config_file
         self.zenoh_cfg = zenoh_config(config.listen, config.connect, cfg_file, lease_ms=SERVICE_LEASE_MS)
+        self.fence_s, self._watch_tick = fence_and_tick(
+            config.limits.fence_after_s, lease_in_effect_s(self.zenoh_cfg)
+        )
         self.zenoh = zenoh.open(self.zenoh_cfg)
         self._pubs: dict[str, Any] = {}
         self._stop = threading.Event()
@@ -229,21 +237,22 @@ class EstimatorService:
             self._expire(time.monotonic())
 
     def _watch(self) -> None:
-        """Tick every :data:`WATCH_TICK_S`; a late tick means the process was frozen."""
-        while not self._stop.wait(WATCH_TICK_S):
+        """Tick every :data:`~estimator_service.service.limits.WATCH_TICK_S` (shorter with a
+        short fence); a late tick means the process was frozen."""
+        while not self._stop.wait(self._watch_tick):
             self._fence_if_frozen(tick=True)
 
     def _fence_if_frozen(self, tick: bool = False) -> None:
         """Forget every session when this process's clock jumped by more than
-        ``fence_after_s`` since the watchdog's last tick (it was frozen: its blimps may have
+        :attr:`fence_s` since the watchdog's last tick (it was frozen: its blimps may have
         moved). Lock-free unless frozen: the zenoh callbacks call it for every input."""
         now = time.monotonic()
-        if now - self._tick <= self.config.limits.fence_after_s:
+        if now - self._tick <= self.fence_s:
             if tick:
                 self._tick = now
             return
         with self._lock:
-            if now - self._tick <= self.config.limits.fence_after_s:  # another thread fenced first
+            if now - self._tick <= self.fence_s:  # another thread fenced first
                 return
             self._tick = now
             stale = list(self._sessions.values())
@@ -274,6 +283,7 @@ class EstimatorService:
             "v": PROTOCOL_VERSION, "service": self.config.service_id, "count": len(rows),
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
             "fleet": self.fleet(), "unverified_tokens": self._members.refused, "fenced": self.fenced,
+            "fence_s": self.fence_s,
             "evicted": self.evicted,
             "pending_tokens": self._members.pending,
         }  # fmt: skip
