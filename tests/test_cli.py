@@ -236,6 +236,7 @@ def test_zenoh_mistakes_are_one_line_without_rust_internals(capsys, tmp_path: Pa
     json5.write_text("{listen: 5}")
     for argv, needle in (
         (["router", "--listen", "garbage"], "endpoints ['garbage']: Endpoints must be of the form"),
+        (["router", "--connect", "tcp/"], "endpoints ['tcp/127.0.0.1:7447', 'tcp/']:"),
         (["router", "--zenoh-config", str(text)], f"--zenoh-config {text}: Unsupported file type"),
         (["router", "--zenoh-config", str(json5)], "expected struct ListenConfig (line 1, column 10)"),
     ):

@@ -2,8 +2,11 @@
 
 No ``zenohd`` binary comes from the package registries here, so this is a zenoh session in
 router mode: services (``gpbf serve --connect tcp/HOST:PORT``) and clients
-(``open_session(["tcp/HOST:PORT"])``) on one or several machines meet through it. Multicast
-scouting stays off; ``--zenoh-config`` is merged as for the service.
+(``open_session(["tcp/HOST:PORT"])``) on one or several machines meet through it; routers on
+several machines join with ``--connect`` (``docs/deployment.md``). Multicast scouting stays
+off; ``--zenoh-config`` is merged as for the service. A router announces the service's short
+link lease (``SERVICE_LEASE_MS``, 2 s; a configuration file's own lease wins), so a host that
+vanishes is dropped by the other routers, and its services' blimps move, within it.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import zenoh
 from estimator_service.cli_args import Parser
 from estimator_service.service.config import (
     DEFAULT_ENDPOINT,
+    SERVICE_LEASE_MS,
     describe,
     serve_until_stopped,
     zenoh_config,
@@ -26,9 +30,12 @@ from estimator_service.service.config import (
 __all__ = ["main", "router_config"]
 
 
-def router_config(listen: tuple[str, ...] = (DEFAULT_ENDPOINT,), file: Path | None = None) -> zenoh.Config:
-    """Router mode listening on ``listen`` (loopback by default), multicast scouting off."""
-    cfg = zenoh_config(listen=listen, file=file)
+def router_config(
+    listen: tuple[str, ...] = (DEFAULT_ENDPOINT,), file: Path | None = None, connect: tuple[str, ...] = ()
+) -> zenoh.Config:
+    """Router mode listening on ``listen`` (loopback by default) and connecting to the
+    routers ``connect``, multicast scouting off, announcing the service's lease."""
+    cfg = zenoh_config(listen=listen, connect=connect, file=file, lease_ms=SERVICE_LEASE_MS)
     unset = zenoh.Config().get_json("mode")
     if file is None or zenoh.Config.from_file(str(file)).get_json("mode") == unset:  # no mode chosen
         cfg.insert_json5("mode", '"router"')
@@ -41,12 +48,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--listen", action="append", default=None, help=f"endpoint (repeatable; none: {DEFAULT_ENDPOINT})"
     )
+    p.add_argument("--connect", action="append", default=None, help="another router's endpoint (repeatable)")
     p.add_argument(
         "--zenoh-config", type=Path, default=None, help="JSON5 zenoh config merged onto the defaults"
     )
     args = p.parse_args(argv)
     try:
-        cfg = router_config(tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config)
+        cfg = router_config(
+            tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config, tuple(args.connect or ())
+        )
         session = zenoh.open(cfg)
     except (ValueError, zenoh.ZError) as exc:
         print(f"gpbf router: error: {zenoh_message(exc)}", file=sys.stderr)
