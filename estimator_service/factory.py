@@ -40,13 +40,7 @@ from estimator_service.models.gp_models import (
 )
 from estimator_service.store import check_folder, read_system
 from estimator_service.system import System
-from estimator_service.user_models import (
-    USER_MODELS_FILE,
-    UserPrediction,
-    UserSensorModel,
-    load_user_models,
-    user_models,
-)
+from estimator_service.user_models import USER_MODELS_FILE, UserSensorModel, load_user_models, user_models
 
 __all__ = [
     "FILTER_KINDS",
@@ -79,17 +73,14 @@ MODEL_PREFERENCE = ("hetgp", "egp", "gp", "sparse", "param")
 @dataclass(frozen=True)
 class Parametric:
     """A system's parametric models as the factory uses them: the filters' models, the
-    prediction's mean change (the enhanced kinds' prediction mean), its noise shape at the
-    prediction GP's inputs ``[x, u]`` (the enhanced kinds' residual scale; None without one)
-    and, per sensor, the mean function of its observation GP's inputs (the state, then its
-    type's constants)."""
+    prediction's mean change (the enhanced kinds' prediction mean) and, per sensor, the
+    mean function of its observation GP's inputs (the state, then its type's constants)."""
 
     prediction: PredictionModel
     observation: ObservationModel
     change: Callable[[np.ndarray, np.ndarray], np.ndarray]
     sensor_means: dict[str, Callable[[np.ndarray], np.ndarray]]
     sensor_jacobians: dict[str, Callable[[np.ndarray], np.ndarray]] = field(default_factory=dict)
-    noise_shape: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def load_parametric(folder: str | os.PathLike[str], system: System) -> Parametric:
@@ -116,15 +107,7 @@ def load_parametric(folder: str | os.PathLike[str], system: System) -> Parametri
     jacobians = {part: partial(_state_jacobian, m, n) for part, m in parts.items()}
     columns = [_columns(system, observation_parts(system)[part]) for part in parts]
     stacked = StackedObservationModel(tuple(parts.values()), tuple(columns))
-    shape = None if pred.noise is None else partial(_shape_at, pred, n)
-    return Parametric(pred, stacked, pred.change, means, jacobians, shape)
-
-
-def _shape_at(model: UserPrediction, n: int, q: np.ndarray) -> np.ndarray:
-    """The prediction model's noise shape ``(M, n)`` at its GP's inputs ``q = [x, u]``."""
-    shape = model.noise_shape(q[:, :n], q[:, n:])
-    assert shape is not None
-    return shape
+    return Parametric(pred, stacked, pred.change, means, jacobians)
 
 
 def _readings_at(model: UserSensorModel, n: int, q: np.ndarray) -> np.ndarray:
@@ -222,10 +205,7 @@ def load_models(
         extra_p = {}
         if param is not None:
             change = param.change
-            extra_p = {
-                "mean_function": lambda q: change(q[:, :n], q[:, n:]),
-                "scale_function": param.noise_shape,
-            }
+            extra_p = {"mean_function": lambda q: change(q[:, :n], q[:, n:])}
         pred = GPPredictionModel(load_gp(folder / f"prediction_{kind}.npz", **extra_p), n)
         obs = _observation(folder, kind, system, param)
     return apply_calibration(folder, kind, pred, obs, system=system) if calibrated else (pred, obs)

@@ -118,9 +118,9 @@ class ModelSpec:
         *shape* of the process noise's standard deviation per step ``(M, n)`` (> 0), such as
         a term growing with the commanded speed plus a constant. Training fits one factor
         per state component by maximum likelihood; the ``param`` kind's noise is then
-        ``factor**2 * shape**2`` at each state and control, and the enhanced kinds' GPs
-        model the residual divided by the shape (so their noise keeps it). Without one the
-        noise is constant.
+        ``factor**2 * shape**2`` at each state and control (without one it is constant). The
+        GP kinds learn their noise from the residuals, as without a shape (the ``hetgp``
+        kind's depends on the state and controls).
     """
 
     function: str

@@ -301,10 +301,7 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         name = f"prediction_{kind}.npz"
         if kind in ENHANCED_KINDS:
             mean = param.change
-            pred = fit_enhanced(
-                x, y, lambda q, mean=mean: mean(q[:, :n], q[:, n:]), fit, base=base_for(name),
-                scale_function=param.noise_shape,
-            )  # fmt: skip
+            pred = fit_enhanced(x, y, lambda q, mean=mean: mean(q[:, :n], q[:, n:]), fit, base=base_for(name))
         else:
             pred = fit(x, y, base_for(name))
         save_gp(pred, out / name)

@@ -163,16 +163,22 @@ class FittedModel:
     noise_var: FloatArray
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "function": self.spec.function,
             "values": dict(self.values),
             "noise_var": self.noise_var.tolist(),
         }
+        return out if self.spec.noise is None else out | {"noise": self.spec.noise}
 
     @classmethod
     def from_dict(cls, spec: ModelSpec, d: object, size: int, where: str) -> FittedModel:
         if not isinstance(d, Mapping) or d.get("function") != spec.function:
             raise UserModelError(f"{where}: fitted for another function than {spec.function!r}: retrain")
+        if d.get("noise") != spec.noise:
+            raise UserModelError(
+                f"{where}: fitted with noise shape {d.get('noise')!r}, the description names "
+                f"{spec.noise!r}: retrain"
+            )
         values = d.get("values")
         names = {k for k, _ in spec.params} | {k for k, _ in spec.fixed}
         if not isinstance(values, Mapping) or set(values) != names:

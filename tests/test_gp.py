@@ -22,7 +22,6 @@ from estimator_service.gp import (
     save_gp,
     sparse_nll,
 )
-from estimator_service.gp.enhanced import numeric_jacobian
 from estimator_service.gp.kernel import se_kernel
 
 
@@ -327,41 +326,6 @@ def test_enhanced_gp_falls_back_to_parametric_model_far_from_data() -> None:
     assert abs(egp.predict(far).mean[0, 0] - 50.0) < 0.5
     assert abs(plain.predict(far).mean[0, 0] - 50.0) > 5.0
     assert egp.predict(far, return_jac=True).jac[0, 0, 0] == pytest.approx(2.0, abs=1e-3)
-
-
-def _speed_shape(q: np.ndarray) -> np.ndarray:
-    """A noise shape growing with the second input (a commanded speed): ``(M, 1)``."""
-    return 0.01 + np.abs(q[:, 1:2])
-
-
-def test_a_scaled_enhanced_gp_keeps_the_noise_shape_and_its_jacobian_is_exact(tmp_path: Path) -> None:
-    """The residual divided by a known noise shape: the predicted noise follows the shape
-    (a homoscedastic residual GP's cannot), the Jacobian matches central differences of the
-    mean, and the file loads only with the shape it was fitted with."""
-    rng = np.random.default_rng(12)
-    x = np.stack([rng.uniform(-2, 2, 300), rng.uniform(-1, 1, 300)], axis=1)
-    f = lambda q: 0.5 * q[:, :1]  # noqa: E731 - the parametric model
-    y = f(x) + 0.2 * np.sin(2 * x[:, :1]) + 0.1 * _speed_shape(x) * rng.standard_normal((300, 1))
-    scaled = fit_enhanced(x, y, f, fit_exact, scale_function=_speed_shape, restarts=1, max_iter=60, rng=rng)
-    plain = fit_enhanced(x, y, f, fit_exact, restarts=1, max_iter=60, rng=rng)
-    slow_fast = np.array([[0.3, 0.0], [0.3, 0.9]])
-    ratio = scaled.predict(slow_fast).var[:, 0]
-    assert ratio[1] / ratio[0] > 20.0  # the shape's square is 8,281; the plain GP's is about 1
-    assert plain.predict(slow_fast).var[1, 0] / plain.predict(slow_fast).var[0, 0] < 3.0
-    q = np.stack([rng.uniform(-1.5, 1.5, 7), rng.uniform(0.1, 1.0, 7)], axis=1)  # off the shape's kink
-    jac = scaled.predict(q, return_jac=True).jac
-    np.testing.assert_allclose(
-        jac, numeric_jacobian(lambda z: scaled.predict(z).mean, q), rtol=1e-5, atol=1e-6
-    )
-    path = save_gp(scaled, tmp_path / "scaled.npz")
-    back = load_gp(path, mean_function=f, scale_function=_speed_shape)
-    np.testing.assert_array_equal(back.predict(q).var, scaled.predict(q).var)
-    with pytest.raises(ModelFileError, match="fitted with a noise shape, loaded without"):
-        load_gp(path, mean_function=f)
-    with pytest.raises(ModelFileError, match="fitted without a noise shape, loaded with"):
-        load_gp(save_gp(plain, tmp_path / "plain.npz"), mean_function=f, scale_function=_speed_shape)
-    with pytest.raises(ValueError, match="scale function returned a value that is not finite and > 0"):
-        fit_enhanced(x, y, f, fit_exact, scale_function=lambda q: q[:, 1:2], max_iter=5)
 
 
 def test_posterior_is_immutable(models) -> None:

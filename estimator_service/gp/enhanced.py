@@ -40,11 +40,9 @@ def value_and_jacobian(
 
 @dataclass(frozen=True, eq=False)
 class EnhancedGP:
-    """Parametric mean ``f`` plus a GP on ``y - f(x)``, or on ``(y - f(x)) / g(x)`` with a
-    scale function ``g`` (a parametric model's noise shape: the residual's noise then keeps
-    the shape, e.g. growing with the commanded speed).
+    """Parametric mean ``f`` plus a GP on ``y - f(x)``.
 
-    Mean and Jacobian add both parts; the variance is the residual GP's (times ``g**2``).
+    Mean and Jacobian add both parts; the variance is the residual GP's.
 
     Attributes
     ----------
@@ -54,8 +52,6 @@ class EnhancedGP:
         Any fitted :class:`GPModel` of the residual.
     mean_jacobian
         ``(M, d) -> (M, P, d)``; central differences of ``f`` when None.
-    scale_function
-        ``g(x): (M, d) -> (M, P)``, > 0; None: 1.
     """
 
     __repr__ = short_repr
@@ -63,7 +59,6 @@ class EnhancedGP:
     mean_function: MeanFunction
     residual: GPModel
     mean_jacobian: JacobianFunction | None = None
-    scale_function: MeanFunction | None = None
     kind: str = "enhanced"
 
     @property
@@ -83,40 +78,16 @@ class EnhancedGP:
         res = self.residual.predict(
             xq, return_var=return_var, return_jac=return_jac, include_noise=include_noise
         )
-        fj = None
+        jac = None
         if return_jac and self.mean_jacobian is None:
             fx, fj = value_and_jacobian(self.mean_function, xq)
+            jac = res.jac + fj
         else:
             fx = self.mean_function(xq)
             if return_jac and self.mean_jacobian is not None:
-                fj = self.mean_jacobian(xq)
-        fx = np.asarray(fx).reshape(res.mean.shape)
-        if self.scale_function is None:
-            return GPPrediction(res.mean + fx, res.var, None if fj is None else res.jac + fj)
-        return self._scaled(xq, res, fx, fj)
-
-    def _scaled(
-        self, xq: FloatArray, res: GPPrediction, fx: FloatArray, fj: FloatArray | None
-    ) -> GPPrediction:
-        """``f + g r`` with variance ``g**2 var(r)`` and Jacobian ``J_f + g J_r + r J_g``."""
-        assert self.scale_function is not None
-        jac = None
-        if fj is None:
-            g = _positive(self.scale_function(xq), res.mean.shape)
-        else:
-            g, gj = value_and_jacobian(self.scale_function, xq)
-            g = _positive(g, res.mean.shape)
-            jac = fj + g[:, :, None] * res.jac + res.mean[:, :, None] * gj
-        var = None if res.var is None else res.var * g * g
-        return GPPrediction(fx + g * res.mean, var, jac)
-
-
-def _positive(g: object, shape: tuple[int, ...]) -> FloatArray:
-    """A scale function's values as ``shape``, finite and > 0, or a ValueError."""
-    a = np.asarray(g, dtype=np.float64).reshape(shape)
-    if not np.all(np.isfinite(a) & (a > 0)):
-        raise ValueError("the residual's scale function returned a value that is not finite and > 0")
-    return a
+                jac = res.jac + self.mean_jacobian(xq)
+        mean = res.mean + np.asarray(fx).reshape(res.mean.shape)
+        return GPPrediction(mean, res.var, jac)
 
 
 def fit_enhanced(
@@ -126,14 +97,11 @@ def fit_enhanced(
     fit: Callable[..., GPModel],
     *,
     mean_jacobian: JacobianFunction | None = None,
-    scale_function: MeanFunction | None = None,
     **fit_kwargs: object,
 ) -> EnhancedGP:
-    """Fit ``fit(x, y - f(x), **fit_kwargs)`` (e.g. :func:`fit_exact`) and wrap it (eq. 16);
-    with ``scale_function`` ``g`` the GP is fitted to ``(y - f(x)) / g(x)``."""
+    """Fit ``fit(x, y - f(x), **fit_kwargs)`` (e.g. :func:`fit_exact`) and wrap it (eq. 16)."""
     xa, ya = check_training_data(x, y)
     fx = np.asarray(mean_function(xa), dtype=np.float64).reshape(ya.shape)
     if not np.all(np.isfinite(fx)):
         raise ValueError("parametric mean function returned NaN or Inf on the training inputs")
-    g = 1.0 if scale_function is None else _positive(scale_function(xa), ya.shape)
-    return EnhancedGP(mean_function, fit(xa, (ya - fx) / g, **fit_kwargs), mean_jacobian, scale_function)
+    return EnhancedGP(mean_function, fit(xa, ya - fx, **fit_kwargs), mean_jacobian)

@@ -4,9 +4,8 @@ Layout: ``__format__`` (int, :data:`FORMAT_VERSION`), ``__kind__`` (``exact``, `
 ``hetero``, ``enhanced`` or ``circular``) and the model's arrays; nested models (hetero:
 ``main/``, ``noise/``; enhanced: ``residual/``; circular: ``inner/``) use key prefixes.
 Files are written to a temporary name in the same folder and renamed, so a crash never
-leaves a half-written model. An enhanced GP's parametric mean function (and scale function,
-where it was fitted with one: the array ``scaled`` says so) is code, not data: pass it to
-:func:`load_gp`.
+leaves a half-written model. An enhanced GP's parametric mean function is code, not data:
+pass it to :func:`load_gp`.
 """
 
 from __future__ import annotations
@@ -61,8 +60,6 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
         out |= _to_arrays(model.main, f"{prefix}main/") | _to_arrays(model.noise, f"{prefix}noise/")
     elif isinstance(model, EnhancedGP):
         out |= _to_arrays(model.residual, f"{prefix}residual/")
-        if model.scale_function is not None:
-            out[f"{prefix}scaled"] = np.ones(1)
     elif isinstance(model, CircularGP):
         out[f"{prefix}angle_inputs"] = np.asarray(model.angle_inputs, dtype=np.float64)
         out[f"{prefix}angle_output"] = np.array([model.angle_output, model.period], dtype=np.float64)
@@ -104,11 +101,10 @@ def _scalers(data: Arrays, prefix: str, where: str, d: int, p: int) -> tuple[Sca
 
 
 class _Code(NamedTuple):
-    """The code an enhanced GP needs to load: its mean, mean Jacobian and scale functions."""
+    """The code an enhanced GP needs to load: its mean and mean Jacobian functions."""
 
     mean: MeanFunction | None = None
     jacobian: JacobianFunction | None = None
-    scale: MeanFunction | None = None
 
 
 _NO_CODE = _Code()
@@ -165,15 +161,7 @@ def _from_arrays(data: Arrays, prefix: str, where: str, code: _Code = _NO_CODE) 
 def _enhanced(data: Arrays, prefix: str, where: str, code: _Code) -> EnhancedGP:
     if code.mean is None:
         raise ModelFileError(f"{where}: an enhanced GP needs its parametric mean_function to load")
-    scaled = f"{prefix}scaled" in data
-    if scaled != (code.scale is not None):
-        raise ModelFileError(
-            f"{where}: fitted {'with' if scaled else 'without'} a noise shape, loaded "
-            f"{'without' if scaled else 'with'} one: the description's 'noise' changed since "
-            "training; retrain"
-        )
-    residual = _from_arrays(data, f"{prefix}residual/", where)
-    return EnhancedGP(code.mean, residual, code.jacobian, code.scale)
+    return EnhancedGP(code.mean, _from_arrays(data, f"{prefix}residual/", where), code.jacobian)
 
 
 def _circular(data: Arrays, prefix: str, where: str, code: _Code) -> CircularGP:
@@ -194,7 +182,6 @@ def load_gp(
     *,
     mean_function: MeanFunction | None = None,
     mean_jacobian: JacobianFunction | None = None,
-    scale_function: MeanFunction | None = None,
 ) -> GPModel:
     """Load a model written by :func:`save_gp` (an enhanced GP with its functions, see
     :class:`~estimator_service.gp.enhanced.EnhancedGP`).
@@ -205,7 +192,7 @@ def load_gp(
         Truncated or unreadable file, wrong format version, missing or inconsistent arrays.
     """
     data, where = _read(path)
-    return _from_arrays(data, "", where, _Code(mean_function, mean_jacobian, scale_function))
+    return _from_arrays(data, "", where, _Code(mean_function, mean_jacobian))
 
 
 def load_innermost_gp(path: str | os.PathLike[str]) -> GPModel:

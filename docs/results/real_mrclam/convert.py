@@ -64,7 +64,11 @@ def description(marks: dict[int, tuple[float, float]]) -> dict:
             {"name": "position_cm", "indices": [0, 1], "factor": 100.0},
             {"name": "heading_deg", "indices": [2], "factor": 180.0 / math.pi},
         ],
-        "prediction_model": {"function": "mrclam_models:unicycle", "params": {"k_v": 1.0, "k_w": 1.0}},
+        "prediction_model": {
+            "function": "mrclam_models:unicycle",
+            "params": {"k_v": 1.0, "k_w": 1.0},
+            "noise": "mrclam_models:unicycle_noise",
+        },
         "sensor_types": [
             {
                 "name": "landmark",

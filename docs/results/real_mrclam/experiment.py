@@ -9,10 +9,7 @@ part's motion; models train on the first 70 % of the run (900 points per GP, the
 unicycle and range-bearing models of ``mrclam_models.py`` fitted by training, no noise
 calibration) and are scored on the last 30 %; across runs, the same models track robot 2's
 last 30 %. Writes ``results.json`` (last line of stdout too), ``report.md`` and plots.
-``--quick`` runs a small version for the smoke test. ``--noise-shape --out
-docs/results/real_mrclam/noise_shape`` runs the same with the unicycle's noise shape of
-``mrclam_models.py`` added to the description (:data:`NOISE_SHAPE`); the main report shows
-that run's figures beside its own where that folder holds them.
+``--quick`` runs a small version for the smoke test.
 """
 
 from __future__ import annotations
@@ -47,10 +44,6 @@ INIT_STD = np.array([0.01, 0.01, math.radians(1.0)])  # start: the truth, 1 cm, 
 PARTICLES = 500  # 2,000 took over 0.4 s per step with a 900-point GP here: 500 keeps the run under an hour
 # the textbook EKF's process noise per step: std = a |command| dt + c (x, y: a_v, c_xy; heading: a_w, c_h)
 TEXTBOOK_Q = {"a_v": 0.1, "c_xy": 0.001, "a_w": 0.1, "c_h": 0.002}
-# a user's process-noise shape for the unicycle (the textbook's form); tried as a variant, adopted into
-# mrclam.json only if the EGP's cross-fitted held-out log-likelihood on the training blocks rises with it
-NOISE_SHAPE = "mrclam_models:unicycle_noise"
-VARIANT = "noise_shape"  # the variant's folder beside the main results
 
 
 def wrap(a):
@@ -183,11 +176,8 @@ def dead_reckoning(f: Flight, system: System) -> dict:
             "heading_rms_deg": float(np.degrees(np.sqrt(np.mean(e[:, 2] ** 2))))}  # fmt: skip
 
 
-def run(out: Path, quick: bool, reuse: bool = False, noise_shape: bool = False) -> dict:
-    described = json.loads((HERE / "mrclam.json").read_text())
-    if noise_shape:
-        described["prediction_model"]["noise"] = NOISE_SHAPE
-    system = System.from_dict(described)
+def run(out: Path, quick: bool, reuse: bool = False) -> dict:
+    system = System.from_json((HERE / "mrclam.json").read_text())
     log1 = load_event_csv(HERE / "data" / "robot1.events.csv.gz", system)
     log2 = load_event_csv(HERE / "data" / "robot2.events.csv.gz", system)
     delay, delay_table = choose_delay(log1, system)
@@ -229,7 +219,7 @@ def run(out: Path, quick: bool, reuse: bool = False, noise_shape: bool = False) 
         cross[f"{kind}_ekf"] = figures(r)
     cross["textbook_ekf"] = textbook(other, train, system)[0]
     cross["dead_reckoning"] = dead_reckoning(other, system)
-    diagnosis = {} if quick or noise_shape else mixed(test, system, models)
+    diagnosis = {} if quick else mixed(test, system, models)
     egp = rows["egp_ekf"]
     summary = {
         "egp_ekf_rms_ratio_to_textbook": egp["position_rms_cm"] / book["position_rms_cm"],
@@ -264,11 +254,10 @@ def run(out: Path, quick: bool, reuse: bool = False, noise_shape: bool = False) 
         if (models / "parametric.json").exists()
         else None,
         "quick": quick,
-        "noise_shape": system.prediction_model.noise if system.prediction_model else None,
     }
     (out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
-    (out / "report.md").write_text(report(result, out))
-    if not (quick or noise_shape):  # the variant's figures are in the main report, its plots are not
+    (out / "report.md").write_text(report(result))
+    if not quick:
         n = len(book_mean)
         book_run = TrackResult(book_mean, book_cov, test.state[1 : n + 1], np.zeros(n), np.zeros(n, np.int64),
                                np.zeros(n, bool), 0.0, system)  # fmt: skip
@@ -330,9 +319,8 @@ HEADER = (
 )
 
 
-def report(r: dict, out: Path) -> str:
-    """report.md from results.json: what was run, the judged figures, every filter and kind (and
-    the noise-shape variant's figures where ``out`` holds them)."""
+def report(r: dict) -> str:
+    """report.md from results.json: what was run, the judged figures, every filter and kind."""
     s, a = r["summary"], r["alignment"]
     lines = [
         "# gpbf on a real robot: UTIAS MRCLAM Dataset 6",
@@ -358,7 +346,9 @@ def report(r: dict, out: Path) -> str:
         "last 30 %.",
         "- gpbf: the description `mrclam.json` with the user's models of `mrclam_models.py` (unicycle with "
         "fitted velocity gains; range-bearing with a fitted range bias; the 15 landmarks one sensor type "
-        "whose constants are their surveyed positions), noise floors 5 cm / 0.01 rad per reading and "
+        "whose constants are their surveyed positions; the unicycle's noise shaped as the textbook EKF's, "
+        "0.1 |command| dt + (1 mm, 1 mm, 0.002 rad), with one fitted factor per state: "
+        "`mrclam_models.unicycle_noise`), noise floors 5 cm / 0.01 rad per reading and "
         "1 mm / 1 mm / 0.002 rad per step, `gpbf train`'s defaults (900 points per GP, noise calibration "
         "cross-fitted on four 120 s blocks of the training part and chosen by their held-out "
         "log-likelihood, refused where it scores worse than none); filters as `gpbf track` builds them "
@@ -418,10 +408,8 @@ def report(r: dict, out: Path) -> str:
                      f"{c['uncalibrated_mll']} | {c['reason']} |")  # fmt: skip
     if r.get("diagnosis_prediction_x_observation"):
         lines += _diagnosis(r["diagnosis_prediction_x_observation"])
-    if (out / VARIANT / "results.json").exists() and not r.get("noise_shape"):
-        lines += _variant(r, json.loads((out / VARIANT / "results.json").read_text()))
     notes = HERE / "notes.md"
-    if notes.exists() and not (r["quick"] or r.get("noise_shape")):
+    if notes.exists() and not r["quick"]:
         lines += ["", notes.read_text().strip()]
     lines += ["", "Plots: `trajectory.png` (EGP-EKF with 3-sigma bands), `errors.png` (error over time, "
               "EGP-EKF and the textbook EKF), `landmark_residuals.png` (held-out readings minus the fitted "
@@ -429,44 +417,6 @@ def report(r: dict, out: Path) -> str:
               "coverage of the beliefs' central intervals per state group: EGP-EKF, hetGP-EKF, textbook "
               "EKF; on the diagonal when calibrated, below it when overconfident).", ""]  # fmt: skip
     return "\n".join(lines)
-
-
-def _variant(r: dict, v: dict) -> list[str]:
-    """The noise-shape variant beside this run: per kind, EKF and UKF and the uncalibrated EKF,
-    and the calibration's held-out log-likelihood on the training blocks (the adoption rule's)."""
-    intro = (
-        "The same experiment with the description's prediction model naming the noise shape "
-        f"`{NOISE_SHAPE}` (std per step 0.1 |v| dt + 1 mm in position, 0.1 |w| dt + 0.002 rad in "
-        "heading, one factor per component fitted by training; the enhanced kinds' GPs model the "
-        f"residual divided by it), in `{VARIANT}/`. Rule fixed before that run: adopt the shape into "
-        "`mrclam.json` if the EGP's cross-fitted held-out log-likelihood on the training blocks rises "
-        "with it. Held-out figures, this run's then the variant's:"
-    )
-    lines = [
-        "", "## A process-noise shape for the unicycle (a variant)", "", intro, "",
-        "| kind | filter | position RMS (cm) | NEES / 3 | mean log-likelihood | with the shape: "
-        "position RMS (cm) | NEES / 3 | mean log-likelihood |",
-        "|---|---|---|---|---|---|---|---|",
-    ]  # fmt: skip
-    for key, f in r["held_out"].items():
-        g = v["held_out"].get(key)
-        if g is None or "nees" not in f or key.endswith("_pf") or key.startswith("textbook"):
-            continue
-        kind, filt = key.split("_", 1)
-        cells = [kind, filt.replace("_", " ")]
-        for x in (f, g):
-            cells += [f"{x['position_rms_cm']:.1f}", f"{x['nees_ratio']:.2f}", f"{x['mll']:.2f}"]
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "| kind | training blocks' held-out log-likelihood | with the shape |", "|---|---|---|"]
-    for kind, c in r["calibration"].items():
-        lines.append(f"| {kind} | {c['heldout_mll']} | {v['calibration'][kind]['heldout_mll']} |")
-    egp, egp_v = r["calibration"]["egp"]["heldout_mll"], v["calibration"]["egp"]["heldout_mll"]
-    verdict = "adopted." if egp_v > egp else "the rule keeps `mrclam.json` without it."
-    return [
-        *lines,
-        "",
-        f"EGP on the training blocks: {egp_v} with the shape against {egp} without: {verdict}",
-    ]
 
 
 def _diagnosis(d: dict[str, dict]) -> list[str]:
@@ -565,18 +515,15 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="a small run for the smoke test")
     p.add_argument("--reuse-models", action="store_true", help="track with OUT/models of an earlier run")
     p.add_argument("--report-only", action="store_true", help="rewrite OUT/report.md from OUT/results.json")
-    p.add_argument(
-        "--noise-shape", action="store_true", help=f"the description with the noise shape {NOISE_SHAPE}"
-    )
     args = p.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.report_only:
         result = json.loads((args.out / "results.json").read_text())
         result["consistency"] = consistency(result["held_out"])  # derived: kept up to date with its rule
         (args.out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
-        (args.out / "report.md").write_text(report(result, args.out))
+        (args.out / "report.md").write_text(report(result))
     else:
-        result = run(args.out, args.quick, args.reuse_models, args.noise_shape)
+        result = run(args.out, args.quick, args.reuse_models)
     print(json.dumps(result["summary"]))
 
 
