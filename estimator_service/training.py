@@ -270,6 +270,9 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         t0 = time.perf_counter()
         param = _fit_parametric(out, flights, system, (inp, change), all_obs)
         timings["param"] = time.perf_counter() - t0
+    noise: dict[str, dict] = {}
+    if param is not None:
+        noise["param"] = _parametric_std(out, system, inp)  # the rows the models were fitted on
     if exclude is not None:
         keep = ~exclude(inp)
         inp, change = inp[keep], change[keep]
@@ -279,9 +282,6 @@ def _fit_models(out: Path, flights, system: System, kinds, settings: TrainSettin
         sel = _subsample(len(xs), settings.n_points, rng)
         obs_sets[part] = (xs[sel], zs[sel])
     angles = tuple(system.circle_inputs or ())
-    noise: dict[str, dict] = {}
-    if param is not None:
-        noise["param"] = _parametric_std(out, system, inp)
     for kind in (k for k in kinds if k != "param"):
         t0 = time.perf_counter()
 

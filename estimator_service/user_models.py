@@ -68,6 +68,7 @@ USER_MODELS_FILE = "parametric.json"
 USER_MODELS_FORMAT = "gpbf-user-models"
 _REL_STEP = 1e-6  # central differences: step relative to max(1, |x|)
 _FIT_EVALS = 200  # least-squares function evaluations per model
+_MIN_VAR = 1e-12  # the least fitted noise variance (or noise-shape factor squared): never 0
 
 
 class UserModelError(ValueError):
@@ -364,7 +365,7 @@ def _least_squares(
 
 def _noise_var(err: FloatArray, floor: Sequence[float]) -> FloatArray:
     """Mean squared residual per output ``(P,)``, at least ``floor**2`` (and > 0)."""
-    return np.maximum(np.mean(err * err, axis=0), np.maximum(np.square(floor), 1e-12))
+    return np.maximum(np.mean(err * err, axis=0), np.maximum(np.square(floor), _MIN_VAR))
 
 
 def fit_prediction(system: System, x: FloatArray, u: FloatArray, x_next: FloatArray) -> FittedModel:
@@ -384,7 +385,7 @@ def fit_prediction(system: System, x: FloatArray, u: FloatArray, x_next: FloatAr
     if spec.noise is None:
         return FittedModel(spec, values, _noise_var(err, system.process_noise_floor))
     g = _noise_shape(resolve(spec.noise), spec.noise, x, u, values, system.dt)
-    factor2 = np.maximum(np.mean((err / g) ** 2, axis=0), np.finfo(np.float64).tiny)
+    factor2 = np.maximum(np.mean((err / g) ** 2, axis=0), _MIN_VAR)
     return FittedModel(spec, values, factor2)
 
 

@@ -229,3 +229,28 @@ def test_a_circular_enhanced_gp_round_trips_with_its_parametric_mean(tmp_path: P
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-12)
     np.testing.assert_allclose(b.jac, a.jac, rtol=1e-12)
     assert abs(b.jac[0, 0, 0] - 3.0) < 0.5
+
+
+def test_the_innermost_gp_of_a_saved_model_loads_without_its_code(model, data, tmp_path: Path) -> None:
+    """An EGP whose residual is a circular GP, as training saves it, then the circular GP and
+    a plain exact GP: ``load_innermost_gp`` gives the exact GP inside (what a calibration
+    fold refits on its own data), without the parametric mean the whole model needs; a
+    damaged array inside is named with the file, by both loaders."""
+    from estimator_service.gp import ExactGP, fit_enhanced, load_innermost_gp
+
+    x, y = data
+    rng = np.random.default_rng(1)
+    base = lambda a, b: fit_exact(a, b, rng=rng, max_iter=5)  # noqa: E731
+    egp = fit_enhanced(x, y, lambda q: 0.5 * q, lambda a, b: fit_circular(a, b, base, angle_inputs=(1,)))
+    for whole, inner in ((egp, egp.residual.inner), (model, model.inner), (model.inner, model.inner)):
+        back = load_innermost_gp(save_gp(whole, tmp_path / "m.npz"))
+        assert isinstance(back, ExactGP)
+        np.testing.assert_array_equal(back.alpha, inner.alpha)
+        np.testing.assert_array_equal(back.theta, inner.theta)
+    arrays = dict(np.load(save_gp(egp, tmp_path / "egp.npz"), allow_pickle=False))
+    arrays["residual/inner/alpha"] = arrays["residual/inner/alpha"][:, :-1]
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ModelFileError, match=r"bad\.npz.*alpha"):
+        load_innermost_gp(tmp_path / "bad.npz")
+    with pytest.raises(ModelFileError, match=r"bad\.npz.*alpha"):
+        load_gp(tmp_path / "bad.npz", mean_function=lambda q: 0.5 * q)

@@ -40,7 +40,8 @@ def wait_for_fleet(session, n: int, within: float = 30.0) -> None:
 
 
 def round_of_steps(clients, k: int) -> tuple[dict[str, str], float, int]:
-    """Step every blimp once: who served each, the slowest step (s), the steps answered."""
+    """Step every blimp once: who served each (or the error), the slowest step (s), the
+    steps answered."""
     served, slowest, answered = {}, 0.0, 0
     for c in clients:
         t0 = time.monotonic()
@@ -48,7 +49,7 @@ def round_of_steps(clients, k: int) -> tuple[dict[str, str], float, int]:
             served[c.blimp] = c.step(np.zeros(3), [], DT * (k + 1))["service"]
             answered += 1
         except Exception as exc:
-            served[c.blimp] = f"error: {exc}"
+            served[c.blimp] = f"error after {time.monotonic() - t0:.2f} s: {exc}"
         slowest = max(slowest, time.monotonic() - t0)
     return served, slowest, answered
 

@@ -168,14 +168,17 @@ OPTIONS = (
 
 #: the freeze watchdog's longest tick (shorter where the fence is short, see fence_and_tick)
 WATCH_TICK_S = 0.25
+#: the shortest fence, whatever the lease (a lease of 0 would make the watchdog spin)
+MIN_FENCE_S = 0.05
 
 
 def fence_and_tick(fence_after_s: float, lease_s: float) -> tuple[float, float]:
     """The freeze fence a service applies and its watchdog's tick: ``fence_after_s``, but at
     most half the link lease in effect ``lease_s`` (the others drop a frozen service after
-    the lease, so its blimps may have moved), and a tick of at most a quarter of the fence so
-    that a healthy watchdog's late tick never looks like a freeze."""
-    fence = min(fence_after_s, lease_s / 2.0)
+    the lease, so its blimps may have moved) and at least :data:`MIN_FENCE_S`, and a tick of
+    at most a quarter of the fence so that a healthy watchdog's late tick never looks like a
+    freeze."""
+    fence = max(min(fence_after_s, lease_s / 2.0), MIN_FENCE_S)
     return fence, min(WATCH_TICK_S, fence / 4.0)
 
 

@@ -5,7 +5,8 @@ router mode: services (``gpbf serve --connect tcp/HOST:PORT``) and clients
 (``open_session(["tcp/HOST:PORT"])``) on one or several machines meet through it; routers on
 several machines join with ``--connect`` (``docs/deployment.md``). Multicast scouting stays
 off; ``--zenoh-config`` is merged as for the service. A router announces the service's short
-link lease (``SERVICE_LEASE_MS``, 2 s; a configuration file's own lease wins), so a host that
+link lease (``SERVICE_LEASE_MS``, 2 s; a configuration file's own lease wins, except one equal
+to zenoh's default of 10 s, which cannot be told from none), so a host that
 vanishes is dropped by the other routers, and its services' blimps move, within it.
 """
 

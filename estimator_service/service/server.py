@@ -366,7 +366,8 @@ def build_parser() -> Parser:
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
     p.add_argument(
         "--zenoh-config", type=Path, default=None,
-        help="JSON5 zenoh config (client/router mode, other endpoints); overrides --listen/--connect",
+        help="JSON5 zenoh config (client mode, authentication, ...) merged onto these options: what it "
+        "sets wins; --listen and --connect apply where it sets none (docs/protocol.md)",
     )  # fmt: skip
     p.add_argument(
         "--workers", type=checked_int(1, 64), default=2, help="worker threads shared by all sessions"
