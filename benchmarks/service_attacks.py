@@ -127,7 +127,8 @@ def _fleet(models: Path, n: int) -> Iterator[tuple[list, object]]:
         if "ready" not in router.stdout.readline():  # the router prints one line, or exits
             raise RuntimeError("the zenoh router did not start")
         join = ("--connect", f"tcp/127.0.0.1:{port}", "--model", "sparse", *SERVE_ARGS)
-        started = [spawn_service(models, free_port(), *join) for _ in range(n)]
+        for _ in range(n):  # each kept as soon as it runs: killed below whatever fails next
+            started.append(spawn_service(models, free_port(), *join))
         session = open_session([f"tcp/127.0.0.1:{port}"])
         try:
             deadline = time.time() + 20

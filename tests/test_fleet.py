@@ -74,7 +74,8 @@ def _fleet(models: Path, n: int):
     started = []
     try:
         assert "mode router" in router.stdout.readline()
-        started = [spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}") for _ in range(n)]
+        for _ in range(n):  # each kept as soon as it runs: killed below whatever fails next
+            started.append(spawn_service(models, free_port(), "--connect", f"tcp/127.0.0.1:{port}"))
         session = open_session([f"tcp/127.0.0.1:{port}"])
         _wait_for_fleet(session, n)
         yield started, session
