@@ -358,8 +358,8 @@ class LikelihoodChoice:
     uncalibrated: HeldOut
     curve: dict[str, float]
     reason: str
-    process: FloatArray | None = None
-    observation: FloatArray | None = None
+    process: FloatArray
+    observation: FloatArray
     origin: str = ""
 
     def details(self) -> dict:
@@ -412,7 +412,7 @@ def calibrate_by_likelihood(
     first = _choose(scored, candidates, base)
     if on_pass is not None:
         on_pass("first pass")
-    if not math.isfinite(first.chosen.mll) or first.process is None or first.observation is None:
+    if not math.isfinite(first.chosen.mll):
         if on_pass is not None:  # every candidate blew up: nothing to move from
             on_pass("second pass (none)")
         return first

@@ -269,7 +269,7 @@ class UserPrediction(_FittedFunctions):
             periods = np.asarray(self.system.state_periods)
             nxt, jn = wrapped_jacobian(lambda q, rows: self.next_state(q, uu[rows]), x, periods)
             mean, j = self.system.state_error(nxt, x), jn - np.eye(n)
-        shape = self.noise_shape(x, uu) if var else None
+        shape = self.noise_shape(x, uu)
         noise = self.fitted.noise_var if shape is None else self.fitted.noise_var * shape * shape
         return ModelOutput(mean, np.broadcast_to(noise, mean.shape), j)
 
