@@ -503,6 +503,41 @@ def test_a_full_session_table_frees_its_idlest_session_for_a_new_blimp(models, f
         assert svc.close() == 0
 
 
+@pytest.mark.slow
+def test_a_tenant_at_its_quota_gives_up_its_own_idlest_session_never_another_tenants(models, flight) -> None:
+    """Blimp ids ``<tenant>.<name>`` count against their tenant's ``--session-quota``: a tenant
+    at its quota is refused while its sessions are busy, and once one is idle for
+    ``--evict-idle`` its new blimp closes that tenant's least recently used session, even
+    when another tenant's session has been idle longer; the other tenant keeps its room."""
+    svc = Running(models, "--max-sessions", "5", "--session-quota", "2", "--evict-idle", "0.5")
+    try:
+        t0 = float(flight.t[0])
+        sessions = {b: svc.client(b) for b in ("b.idle", "a.one", "a.two", "b.busy")}
+        for c in sessions.values():
+            c.reset(flight.state[0], STD, t=t0)
+        quota = r"tenant 'a' holds its quota of 2 sessions \(--session-quota\)"
+        with pytest.raises(ServiceError, match=quota):
+            svc.client("a.three").reset(flight.state[0], STD, t=t0)
+        for k in range(4):  # a.two and b.busy stay active, a.one and b.idle fall idle
+            time.sleep(0.2)
+            for b in ("a.two", "b.busy"):
+                sessions[b].step(flight.control[k], [], float(flight.t[k + 1]))
+        svc.client("a.three").reset(flight.state[0], STD, t=t0)  # closes a.one, not b.idle
+        svc.client("shared").reset(flight.state[0], STD, t=t0)  # the tenant "": the fifth session
+        svc.client("c.new").reset(flight.state[0], STD, t=t0)  # at the cap: the idlest, b.idle
+        view = svc.sessions()
+        names = sorted(s["blimp"] for s in view["sessions"])
+        assert names == ["a.three", "a.two", "b.busy", "c.new", "shared"]
+        assert view["evicted"] == 2 and view["session_quota"] == 2
+        with pytest.raises(ServiceError, match="no session"):
+            sessions["a.one"].status()
+        for bad in ("a.b.c", ".x", "x.", "a" * 65 + ".x"):
+            with pytest.raises(ValueError, match=rf"blimp={re.escape(repr(bad))}: invalid blimp id"):
+                svc.client(bad)
+    finally:
+        assert svc.close() == 0
+
+
 #: per field: a value just inside its range and one just outside (an error naming the field)
 EDGES = {
     "horizon_s": (1e-9, 0.0),
@@ -515,6 +550,7 @@ EDGES = {
     "session_ttl_s": (0.0, -1e-9),
     "max_sessions": (1, 0),
     "evict_idle_s": (0.0, -1e-9),
+    "session_quota": (1, 0),
     "fence_after_s": (1e-9, 0.0),
     "catch_up_share": (1e-9, 0.0),
     "catch_up_burst_s": (1e-9, 0.0),
@@ -550,8 +586,8 @@ def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> Non
     given = {
         "horizon_s": 30.0, "max_gap_steps": 7, "queue_cap": 8, "queue_bytes": 9, "total_queue_bytes": 10,
         "max_controls": 11, "gate_p": 0.25, "session_ttl_s": 12.0, "max_sessions": 13,
-        "evict_idle_s": 14.0, "fence_after_s": 15.0, "catch_up_share": 16.0, "catch_up_burst_s": 17.0,
-        "catch_up_slice_s": 18.0,
+        "evict_idle_s": 14.0, "session_quota": 19, "fence_after_s": 15.0, "catch_up_share": 16.0,
+        "catch_up_burst_s": 17.0, "catch_up_slice_s": 18.0,
     }  # fmt: skip
     args = [str(a) for flag, name, _, _ in OPTIONS for a in (flag, given[name])]
     got = limits_from(p.parse_args(args))

@@ -1,5 +1,6 @@
 """docs/examples/secure: user/password authentication and an ACL that lets only the named
-pilot reset and step blimps, tested both ways against a real service."""
+pilot reset and step any blimp and each tenant only its own, tested both ways against a
+real service."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from estimator_service.service import keys
 from estimator_service.service.client import (
     EstimatorClient,
     NoReply,
+    ServiceError,
     free_port,
     list_sessions,
     open_session,
@@ -84,6 +86,53 @@ def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -
         assert view["fleet"] == [view["service"]], view
         token.undeclare()
         answer.undeclare()
+    finally:
+        for s in opened:
+            s.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+
+
+def test_a_tenant_drives_only_its_own_blimps_and_cannot_lock_others_out(models: Path, tmp_path: Path) -> None:
+    """The example's tenants: "alice" may reset and step only ids ``alice.<name>`` (the ACL
+    binds the tenant to the logged-in user), and however many resets she sends she holds at
+    most ``--session-quota`` sessions, so "bob" and the operator still get theirs."""
+    for f in (ROOT / "docs" / "examples" / "secure").iterdir():
+        shutil.copy(f, tmp_path / f.name)
+    port = free_port()
+    quota = ("--session-quota", "3", "--max-sessions", "7")
+    proc, _ = spawn_service(
+        models, port, "--model", "param", "--zenoh-config", "service.json5", *quota, cwd=tmp_path
+    )
+    endpoint = [f"tcp/127.0.0.1:{port}"]
+    opened = []
+    try:
+        alice = open_session(endpoint, config_file=tmp_path / "alice.json5")
+        bob = open_session(endpoint, config_file=tmp_path / "bob.json5")
+        pilot = open_session(endpoint, config_file=tmp_path / "pilot.json5")
+        opened += [alice, bob, pilot]
+        time.sleep(0.3)
+        refused = 0
+        for k in range(8):  # a flood of new blimps: three sessions, then refusals naming the quota
+            try:
+                EstimatorClient(alice, f"alice.{k}", timeout=1.5).reset(np.zeros(12), STD)
+            except ServiceError as err:
+                assert "tenant 'alice' holds its quota of 3 sessions" in str(err)
+                refused += 1
+        assert refused == 5
+        for k in range(3):
+            assert EstimatorClient(bob, f"bob.{k}", timeout=1.5).reset(np.zeros(12), STD)["t"] == 0.0
+        assert EstimatorClient(pilot, "guarded", timeout=1.5).reset(np.zeros(12), STD)["t"] == 0.0
+        for other in ("bob.0", "bob.new", "guarded"):  # another tenant's ids, or the shared ones
+            with pytest.raises(NoReply):
+                EstimatorClient(alice, other, timeout=1.5).reset(np.zeros(12), STD)
+        with pytest.raises(NoReply):
+            EstimatorClient(alice, "bob.0", timeout=1.5).step(np.zeros(3), [], 0.25)
+        assert EstimatorClient(alice, "alice.0", timeout=1.5).step(np.zeros(3), [], 0.25)["t"] == 0.25
+        [view] = list_sessions(pilot)
+        blimps = sorted(s["blimp"] for s in view["sessions"])
+        assert blimps == ["alice.0", "alice.1", "alice.2", "bob.0", "bob.1", "bob.2", "guarded"]
+        assert all(s["steps"] == 0 for s in view["sessions"] if s["blimp"] != "alice.0")
     finally:
         for s in opened:
             s.close()

@@ -132,7 +132,10 @@ class EstimatorClient:
         blimp. Whenever the service answers that it has no session, the client re-creates it
         from the last belief it received (a ``reset`` to that mean, covariance and time),
         counts it in ``resyncs`` and reports it through ``on_resync(blimp, last_belief)`` and
-        a warning on the ``estimator_service.client`` logger."""
+        a warning on the ``estimator_service.client`` logger. ``blimp``: ``[<tenant>.]<name>``
+        (:data:`~estimator_service.service.keys.BLIMP_ID`); another id raises ValueError."""
+        if not isinstance(blimp, str) or not keys.BLIMP_ID.match(blimp):
+            raise ValueError(f"blimp={blimp!r}: {keys.BLIMP_ID_RULE}")
         self.session, self.blimp = session, blimp
         self.timeout = attempt_timeout if failover else timeout
         self.failover, self.failover_s, self.on_resync = failover, failover_s, on_resync

@@ -2,7 +2,9 @@
 
 ``gpbf/<blimp>/<kind>`` for a blimp's inputs (``control``, ``camera/<k>``), outputs
 (``belief``, ``error``) and queries (``step``, ``reset``, ``status``); a liveliness token
-``gpbf/@service/<id>`` per running service. ``docs/protocol.md`` documents them.
+``gpbf/@service/<id>`` per running service. A blimp id ``<tenant>.<name>`` names the tenant
+whose session quota it counts against (an access-control rule on ``gpbf/<tenant>.$*/...``
+binds a tenant to a logged-in identity). ``docs/protocol.md`` documents them.
 """
 
 from __future__ import annotations
@@ -13,11 +15,13 @@ from collections.abc import Iterable
 
 __all__ = [
     "BLIMP_ID",
+    "BLIMP_ID_RULE",
     "INPUTS",
     "LIVELINESS_PREFIX",
     "OUTPUTS",
     "PREFIX",
     "QUERIES",
+    "SERVICE_ID",
     "blimp_key",
     "camera_key",
     "hello_key",
@@ -25,12 +29,19 @@ __all__ = [
     "owner",
     "parse_key",
     "sessions_key",
+    "tenant",
     "wildcard",
 ]
 
 PREFIX = "gpbf"
 LIVELINESS_PREFIX = f"{PREFIX}/@service"
-BLIMP_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+_NAME = r"[A-Za-z0-9_\-]{1,64}"
+#: a service id: one name
+SERVICE_ID = re.compile(rf"^{_NAME}$")
+#: a blimp id: a name, or ``<tenant>.<name>``
+BLIMP_ID = re.compile(rf"^(?:{_NAME}\.)?{_NAME}$")
+BLIMP_ID_RULE = "invalid blimp id: [<tenant>.]<name>, each 1-64 characters of A-Z a-z 0-9 _ -"
+TENANT_SEP = "."
 INPUTS = ("control", "camera")
 OUTPUTS = ("belief", "error")
 QUERIES = ("step", "reset", "status", "close")
@@ -49,6 +60,12 @@ def camera_key(blimp: str, camera: int) -> str:
 def wildcard(kind: str) -> str:
     """The key expression that matches ``kind`` for every blimp (``camera``: every camera)."""
     return f"{PREFIX}/*/camera/*" if kind == "camera" else f"{PREFIX}/*/{kind}"
+
+
+def tenant(blimp: str) -> str:
+    """The tenant of a blimp id: its part before ``.``; ``""`` (the shared tenant) without one."""
+    head, sep, _ = blimp.partition(TENANT_SEP)
+    return head if sep else ""
 
 
 def liveliness_key(service_id: str) -> str:

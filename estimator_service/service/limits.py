@@ -75,6 +75,14 @@ class Limits:
     evict_idle_s
         At the session cap, a new blimp's reset closes the session idle the longest if it
         has been idle this long (counted as ``evicted``); otherwise the reset is refused.
+    session_quota
+        Sessions per tenant (:func:`~estimator_service.service.keys.tenant`: a blimp id's part
+        before ``.``; ids without one share the tenant ``""``). A tenant's new blimp at its
+        quota, or at the session cap, first closes that tenant's own least recently used
+        session idle for ``evict_idle_s``; at the quota it is refused otherwise, naming the
+        tenant. With ``max_sessions >= session_quota x tenants``, a tenant whose identity the
+        access configuration binds to its ids (``gpbf/<tenant>.$*/...``) cannot lock others
+        out, however many resets it sends.
     fence_after_s
         A service whose own clock shows it was frozen (stopped, swapped out) for longer than
         this forgets every session on waking: the fleet may have given its blimps to others
@@ -111,6 +119,7 @@ class Limits:
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
     evict_idle_s: float = 30.0
+    session_quota: int = 1024
     fence_after_s: float = SERVICE_LEASE_MS / 2000
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
@@ -124,7 +133,8 @@ class Limits:
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
-            "evict_idle_s": self.evict_idle_s >= 0, "fence_after_s": self.fence_after_s > 0,
+            "evict_idle_s": self.evict_idle_s >= 0, "session_quota": self.session_quota >= 1,
+            "fence_after_s": self.fence_after_s > 0,
             "catch_up_share": self.catch_up_share > 0,
             "catch_up_burst_s": self.catch_up_burst_s > 0, "catch_up_slice_s": self.catch_up_slice_s > 0,
         }  # fmt: skip
@@ -155,6 +165,8 @@ OPTIONS = (
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
     ("--evict-idle", "evict_idle_s", checked_float(0.0, 1e9),
      "seconds idle after which a session may be closed for a new blimp at the session cap"),
+    ("--session-quota", "session_quota", checked_int(1, 1_000_000),
+     "sessions per tenant (a blimp id's part before '.'; ids without one share one tenant)"),
     ("--fence-after", "fence_after_s", checked_float(0.0, 1e6, low_open=True),
      "seconds frozen after which a waking service forgets its sessions (its blimps may have moved)"),
     ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),

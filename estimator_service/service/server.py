@@ -164,16 +164,10 @@ class EstimatorService:
             if s is None and not create:
                 why = "new blimp, service restarted, blimp moved or expired"
                 return f"{NO_SESSION} {blimp!r}: send a reset ({why})"
-            if s is None and len(self._sessions) >= self.config.limits.max_sessions:
-                self._expire(time.monotonic())
-                self._evict_idlest()
-            if s is None and len(self._sessions) >= self.config.limits.max_sessions:
-                cap, idle = self.config.limits.max_sessions, self.config.limits.evict_idle_s
-                return (
-                    f"session cap of {cap} reached and none idle for {idle:g} s (--evict-idle): "
-                    f"close sessions ('close') or wait"
-                )
             if s is None:
+                full = self._make_room(blimp)
+                if full is not None:
+                    return full
                 s = Session(
                     blimp,
                     self.config.filter,
@@ -220,16 +214,40 @@ class EstimatorService:
                 self._sessions.pop(b).stop()
         return len(old)
 
-    def _evict_idlest(self) -> None:
-        """At the session cap (under the lock): close the session idle the longest, if it has
-        been idle for ``evict_idle_s`` (a table filled by resets that are never followed by
-        input frees up within that time, not the session time-out)."""
+    def _make_room(self, blimp: str) -> str | None:
+        """Room for a new blimp's session (under the lock), or why there is none: at its
+        tenant's quota or at the session cap, the tenant's own least recently used session
+        idle for ``evict_idle_s`` is closed first; at the cap, then the one idle the longest
+        (a table filled by resets never followed by input frees up within that time)."""
+        lim, tenant = self.config.limits, keys.tenant(blimp)
+        wait = f"none idle for {lim.evict_idle_s:g} s (--evict-idle): close sessions ('close') or wait"
+        if self._tenant_count(tenant) >= lim.session_quota and not self._evict_idlest(tenant):
+            quota = f"quota of {lim.session_quota} sessions (--session-quota)"
+            return f"tenant {tenant!r} holds its {quota} and {wait}"
+        if len(self._sessions) >= lim.max_sessions:
+            self._expire(time.monotonic())
+        if len(self._sessions) >= lim.max_sessions and not (
+            self._evict_idlest(tenant) or self._evict_idlest(None)
+        ):
+            return f"session cap of {lim.max_sessions} reached and {wait}"
+        return None
+
+    def _tenant_count(self, tenant: str) -> int:
+        return sum(1 for b in self._sessions if keys.tenant(b) == tenant)
+
+    def _evict_idlest(self, tenant: str | None) -> bool:
+        """Close the session idle the longest (of ``tenant``; of any with None) if it has been
+        idle for ``evict_idle_s`` (under the lock); whether one was closed."""
         now = time.monotonic()
-        idle = {b: s.idle_s(now) for b, s in self._sessions.items()}
+        idle = {
+            b: s.idle_s(now) for b, s in self._sessions.items() if tenant is None or keys.tenant(b) == tenant
+        }
         blimp = max(idle, key=idle.__getitem__, default=None)
-        if blimp is not None and idle[blimp] >= self.config.limits.evict_idle_s:
-            self._sessions.pop(blimp).stop()
-            self.evicted += 1
+        if blimp is None or idle[blimp] < self.config.limits.evict_idle_s:
+            return False
+        self._sessions.pop(blimp).stop()
+        self.evicted += 1
+        return True
 
     def _expire_loop(self) -> None:
         ttl = self.config.limits.session_ttl_s
@@ -284,7 +302,7 @@ class EstimatorService:
             "max_sessions": self.config.limits.max_sessions, "oversized": self.oversized, "sessions": rows,
             "fleet": self.fleet(), "unverified_tokens": self._members.refused, "fenced": self.fenced,
             "fence_s": self.fence_s,
-            "evicted": self.evicted,
+            "evicted": self.evicted, "session_quota": self.config.limits.session_quota,
             "pending_tokens": self._members.pending,
         }  # fmt: skip
         # its own key, not the query's wildcard: replies of several services are not merged
@@ -323,7 +341,7 @@ class EstimatorService:
         self._fence_if_frozen()
         blimp, kind, _ = keys.parse_key(str(query.key_expr))
         if blimp is None:
-            self._refuse(None, kind, "invalid blimp id: 1-64 characters of A-Z a-z 0-9 _ -", query)
+            self._refuse(None, kind, keys.BLIMP_ID_RULE, query)
             return
         if not self._owns(blimp):  # another service of the fleet answers
             query.drop()
