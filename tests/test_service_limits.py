@@ -30,6 +30,7 @@ from estimator_service.service.client import (
 from estimator_service.service.config import zenoh_config
 from estimator_service.service.limits import (
     OPTIONS,
+    CatchUpBudget,
     ControlLog,
     Limits,
     WorkBudget,
@@ -384,7 +385,8 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
     refuses what it cannot afford and a catch-up gives its worker back every slice, so a
     healthy blimp's lock-step steps stay fast; without both (``unbounded``: the budget opened
     wide, one 60 s slice) the same chains stall them."""
-    opened = ("--catch-up-share", "64", "--catch-up-burst", "3600", "--catch-up-slice", "60")
+    opened = ("--catch-up-share", "64", "--tenant-catch-up-share", "64", "--catch-up-burst", "3600",
+              "--catch-up-slice", "60")  # fmt: skip
     wide = opened if unbounded else ()
     svc = Running(models, "--particles", "8000", *wide)  # frames of ~0.3 s each here
     try:
@@ -407,7 +409,7 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
         assert times[-2] < 600.0, times[-5:]
         refused = sum(a.status()["refused_catch_up"] for a in attackers)
         errors = [e["error"] for a in attackers for e in a.errors(wait=0.2)]
-        assert refused > 0 and any("--catch-up-share" in e for e in errors), (refused, errors[:2])
+        assert refused > 0 and any("catch-up-share)" in e for e in errors), (refused, errors[:2])
     finally:
         svc.proc.kill()
         svc.session.close()
@@ -555,6 +557,7 @@ EDGES = {
     "catch_up_share": (1e-9, 0.0),
     "catch_up_burst_s": (1e-9, 0.0),
     "catch_up_slice_s": (1e-9, 0.0),
+    "tenant_catch_up_share": (1e-9, 0.0),
 }
 
 
@@ -587,7 +590,7 @@ def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> Non
         "horizon_s": 30.0, "max_gap_steps": 7, "queue_cap": 8, "queue_bytes": 9, "total_queue_bytes": 10,
         "max_controls": 11, "gate_p": 0.25, "session_ttl_s": 12.0, "max_sessions": 13,
         "evict_idle_s": 14.0, "session_quota": 19, "fence_after_s": 15.0, "catch_up_share": 16.0,
-        "catch_up_burst_s": 17.0, "catch_up_slice_s": 18.0,
+        "catch_up_burst_s": 17.0, "catch_up_slice_s": 18.0, "tenant_catch_up_share": 20.0,
     }  # fmt: skip
     args = [str(a) for flag, name, _, _ in OPTIONS for a in (flag, given[name])]
     got = limits_from(p.parse_args(args))
@@ -694,7 +697,7 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
     from estimator_service.filters import EKF, GaussianBelief, StepInfo
     from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
     from estimator_service.service.batching import step_together
-    from estimator_service.service.limits import WorkBudget
+    from estimator_service.service.limits import CatchUpBudget
     from estimator_service.service.session import Session, SessionSettings, _CatchUp
     from estimator_service.service.workers import WorkerPool
     from estimator_service.system import Sensor, System
@@ -702,19 +705,19 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
     system = System("fast", ("p",), ("u",), (Sensor("pos", ("p",)),), 0.001)
     filt = EKF(LinearGaussianPrediction(np.eye(1), np.ones((1, 1)), np.full(1, 1e-4)),
                LinearGaussianObservation(np.eye(1), np.full(1, 1e-2)))  # fmt: skip
-    budget = WorkBudget(rate=0.5, burst=2.0, clock=lambda: 0.0)  # no refill during the test
+    budget = CatchUpBudget(0.5, 0.5, 2.0, clock=lambda: 0.0)  # no refill during the test
     pool = WorkerPool(1, step_together)
     s = Session("A", "ekf", "gp", SessionSettings(system, Limits(), catch_up=budget), lambda *_: filt,
                 lambda *_: None, pool=pool)  # fmt: skip
     try:
-        assert budget.take(1.5) == pytest.approx(0.5)  # a catch-up reserved 1.5 s, then spent 0.25
+        assert budget.take("", 1.5) is None  # a catch-up reserved 1.5 s, then spent 0.25
         cont = _CatchUp(None, None, StepInfo(), n=100, known=True, reserved=1.5, done=40, spent=0.25)
         s._dropped(("camera", b"", None, cont))
-        assert budget.available() == pytest.approx(1.75)  # 0.5 left + 1.25 unspent
+        assert budget.available("") == pytest.approx(1.75)  # 0.5 left + 1.25 unspent
         s._dropped(("camera", b"", None, cont))  # settled once only
-        assert budget.available() == pytest.approx(1.75)
+        assert budget.available("") == pytest.approx(1.75)
         # a catch-up whose prediction fails is rejected and refunds what it did not spend too
-        assert budget.take(1.5) == pytest.approx(0.25)
+        assert budget.take("", 1.5) is None
 
         class Failing(EKF):
             def predict(self, *args, **kwargs):
@@ -728,6 +731,28 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
                         reserved=1.5, done=40, spent=0.25)  # fmt: skip
         with pytest.raises(RuntimeError, match="prediction failed"):
             s._camera(frame, cont)
-        assert budget.available() == pytest.approx(1.5, abs=0.01) and cont.reserved == 0.0
+        assert budget.available("") == pytest.approx(1.5, abs=0.01) and cont.reserved == 0.0
     finally:
         pool.stop()
+
+
+def test_one_tenants_catch_ups_use_only_its_share_of_the_services_budget() -> None:
+    """A reservation must fit the tenant's own bucket and the service's (twice the burst at
+    half the rate): tenant "a" spends its burst, is refused naming
+    ``--tenant-catch-up-share`` and leaves "b" a whole burst; the service's refusal names
+    ``--catch-up-share`` and takes nothing from the tenant."""
+    clock = Clock()
+    b = CatchUpBudget(rate=0.5, tenant_rate=0.25, burst=2.0, clock=clock, max_tenants=2)
+    assert b.service.burst == 4.0 and b.available("a") == 2.0
+    assert b.take("a", 2.0) is None and b.take("a", 0.1) == ("--tenant-catch-up-share", 0.25, 0.0)
+    assert b.available("b") == 2.0 and b.take("b", 1.5) is None  # what a left: a whole burst
+    assert b.take("c", 0.6) == ("--catch-up-share", 0.5, pytest.approx(0.5))
+    assert b.available("c") == pytest.approx(0.5)  # nothing taken from c's bucket
+    clock.now += 4.0  # the service refills 2 s; a 1 s, b 1 s
+    assert b.take("a", 1.5) == ("--tenant-catch-up-share", 0.25, pytest.approx(1.0))
+    assert b.take("a", 1.0) is None and b.available("b") == pytest.approx(1.5)
+    b.settle("a", 1.0, 0.25)  # a's unspent work comes back to both
+    assert b.available("a") == pytest.approx(0.75) and b.service.available() == pytest.approx(2.25)
+    clock.now += 100.0  # every bucket full again: a fourth tenant forgets the full ones
+    assert b.take("d", 0.0) is None and b.available("d") == 2.0
+    assert b.take("a", 2.0) is None  # a's bucket starts full like a new one's

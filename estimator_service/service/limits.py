@@ -27,6 +27,7 @@ from estimator_service.service.config import SERVICE_LEASE_MS
 __all__ = [
     "OPTIONS",
     "WATCH_TICK_S",
+    "CatchUpBudget",
     "ControlLog",
     "Limits",
     "WorkBudget",
@@ -101,6 +102,11 @@ class Limits:
         is also the most one catch-up may cost (bursts of 0.05 s refused every streamed frame
         of a particle filter whose catch-up of a few steps costs more: 0.2-0.5 s per step on a
         900-point GP).
+    tenant_catch_up_share
+        The part of ``catch_up_share`` one tenant's frames may use (its own bucket, with
+        bursts up to ``catch_up_burst_s``; the service's bucket holds ``catch_up_burst_s x
+        catch_up_share / tenant_catch_up_share``: :class:`CatchUpBudget`): a tenant's
+        near-horizon chains exhaust its own share and leave the rest to the others' catch-ups.
     catch_up_slice_s
         A catch-up gives its worker to the other sessions after this many seconds of work and
         continues on its session's next turn (its predictions kept aside, nothing adopted
@@ -123,6 +129,7 @@ class Limits:
     fence_after_s: float = SERVICE_LEASE_MS / 2000
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
+    tenant_catch_up_share: float = 0.25
     catch_up_slice_s: float = 0.02
 
     def __post_init__(self) -> None:
@@ -137,6 +144,7 @@ class Limits:
             "fence_after_s": self.fence_after_s > 0,
             "catch_up_share": self.catch_up_share > 0,
             "catch_up_burst_s": self.catch_up_burst_s > 0, "catch_up_slice_s": self.catch_up_slice_s > 0,
+            "tenant_catch_up_share": self.tenant_catch_up_share > 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -171,6 +179,8 @@ OPTIONS = (
      "seconds frozen after which a waking service forgets its sessions (its blimps may have moved)"),
     ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),
      "seconds of catch-up predictions per second, over all sessions (frames beyond it: refused)"),
+    ("--tenant-catch-up-share", "tenant_catch_up_share", checked_float(0.0, 64.0, low_open=True),
+     "seconds of catch-up work per second one tenant's frames may use (of --catch-up-share)"),
     ("--catch-up-burst", "catch_up_burst_s", checked_float(0.0, 3600.0, low_open=True),
      "seconds of catch-up predictions available at once"),
     ("--catch-up-slice", "catch_up_slice_s", checked_float(0.0, 60.0, low_open=True),
@@ -226,6 +236,54 @@ class WorkBudget:
         """The work reserved at ``estimate_s`` cost ``actual_s``."""
         with self._lock:
             self._tokens = min(self.burst, self._tokens + estimate_s - actual_s)
+
+
+class CatchUpBudget:
+    """The service's catch-up budget and each tenant's own part of it (thread-safe): a
+    reservation must fit both the tenant's :class:`WorkBudget` (``tenant_rate`` seconds per
+    second, at most ``burst`` at once: the most one catch-up may cost) and the service's
+    (``rate``, at most ``burst x rate / tenant_rate`` at once, never less than ``burst``).
+    One tenant's frames therefore use at most ``tenant_rate`` per second over time and
+    ``burst`` at once, and the others always find the rest: with ``rate >= 2 tenant_rate``, at
+    least ``burst`` minus their own use. A tenant's bucket is forgotten once full again (then
+    it is a new one's equal), when more than ``max_tenants`` are held."""
+
+    def __init__(
+        self, rate: float, tenant_rate: float, burst: float, clock=time.monotonic, max_tenants: int = 4096
+    ) -> None:
+        self.service = WorkBudget(rate, burst * max(1.0, rate / tenant_rate), clock)
+        self.tenant_rate, self.burst, self.max_tenants, self._clock = tenant_rate, burst, max_tenants, clock
+        self._tenants: dict[str, WorkBudget] = {}
+        self._lock = threading.Lock()
+
+    def _own(self, tenant: str) -> WorkBudget:
+        with self._lock:
+            own = self._tenants.get(tenant)
+            if own is None:
+                if len(self._tenants) >= self.max_tenants:
+                    self._tenants = {t: b for t, b in self._tenants.items() if b.available() < b.burst}
+                own = self._tenants[tenant] = WorkBudget(self.tenant_rate, self.burst, self._clock)
+            return own
+
+    def take(self, tenant: str, estimate_s: float) -> tuple[str, float, float] | None:
+        """Reserve ``estimate_s`` for ``tenant``: None when reserved, else ``(option, rate,
+        available)`` of the budget that refused it (nothing reserved)."""
+        own = self._own(tenant)
+        if own.take(estimate_s) is None:
+            return "--tenant-catch-up-share", own.rate, own.available()
+        if self.service.take(estimate_s) is None:
+            own.settle(estimate_s, 0.0)
+            return "--catch-up-share", self.service.rate, self.service.available()
+        return None
+
+    def available(self, tenant: str) -> float:
+        """What ``tenant`` may reserve now: the smaller of its own and the service's budget."""
+        return min(self._own(tenant).available(), self.service.available())
+
+    def settle(self, tenant: str, estimate_s: float, actual_s: float) -> None:
+        """The work ``tenant`` reserved at ``estimate_s`` cost ``actual_s``."""
+        self._own(tenant).settle(estimate_s, actual_s)
+        self.service.settle(estimate_s, actual_s)
 
 
 def add_limit_options(p: argparse.ArgumentParser) -> None:

@@ -40,8 +40,8 @@ from estimator_service.service.config import (
 )
 from estimator_service.service.inbox import ByteMeter
 from estimator_service.service.limits import (
+    CatchUpBudget,
     Limits,
-    WorkBudget,
     add_limit_options,
     fence_and_tick,
     limits_from,
@@ -103,7 +103,10 @@ class EstimatorService:
         self._lock = threading.RLock()  # a new session builds its filter under the lock
         self._version = model_version(config.model_dir)  # refuses an incomplete or mixed folder
         self.system = read_system(config.model_dir)
-        budget = WorkBudget(config.limits.catch_up_share, config.limits.catch_up_burst_s)
+        lim = config.limits
+        budget = CatchUpBudget(
+            lim.catch_up_share, lim.tenant_catch_up_share, lim.catch_up_burst_s, max_tenants=lim.max_sessions
+        )
         queued = ByteMeter(config.limits.total_queue_bytes)
         self._settings = SessionSettings(self.system, config.limits, budget, queued)
         self.oversized = 0  # inputs refused in the zenoh callback, before any queue

@@ -21,8 +21,9 @@ import numpy as np
 from estimator_service.filters import GaussianBelief, StepInfo
 from estimator_service.filters.common import finite
 from estimator_service.filters.policy import batchable, step_one, update_many
+from estimator_service.service import keys
 from estimator_service.service.inbox import BATCH, ByteMeter, Inbox, Job
-from estimator_service.service.limits import ControlLog, Limits, WorkBudget, gate_for, gated_step
+from estimator_service.service.limits import CatchUpBudget, ControlLog, Limits, gate_for, gated_step
 from estimator_service.service.protocol import (
     MSGPACK,
     PROTOCOL_VERSION,
@@ -49,7 +50,7 @@ class SessionSettings:
 
     system: System
     limits: Limits = field(default_factory=Limits)
-    catch_up: WorkBudget | None = None  # the service's budget of catch-up work (None: unbounded)
+    catch_up: CatchUpBudget | None = None  # the service's and tenants' catch-up work (None: unbounded)
     queued: ByteMeter | None = None  # payload bytes queued over all sessions (None: no service-wide cap)
 
 
@@ -388,7 +389,7 @@ class Session:
         """Replace what ``cont`` reserved from the service's catch-up budget by what it spent
         (once: at its end, its failure, or its drop at the queue cap)."""
         if cont.reserved:
-            self.settings.catch_up.settle(cont.reserved, cont.spent)
+            self.settings.catch_up.settle(keys.tenant(self.blimp), cont.reserved, cont.spent)
             cont.reserved = 0.0
 
     def _reserve_catch_up(self, steps: int, first_s: float) -> float:
@@ -400,13 +401,14 @@ class Session:
             return 0.0
         self._step_s = self._step_s or first_s
         estimate = steps * self._step_s
-        if budget.take(estimate) is None:
+        refused = budget.take(keys.tenant(self.blimp), estimate)
+        if refused is not None:
             self.refused_catch_up += 1
-            share = self.settings.limits.catch_up_share
+            option, rate, available = refused
             raise ProtocolError(
                 f"field 't': catching up {steps} steps would take about {estimate:.3g} s of filtering; "
-                f"the service allows {budget.available():.3g} s now ({share:g} s per second, "
-                f"--catch-up-share); send frames as they come, or a reset"
+                f"the service allows {available:.3g} s now ({rate:g} s per second, "
+                f"{option}); send frames as they come, or a reset"
             )
         return estimate
 
