@@ -4,6 +4,7 @@ owner dies, a blimp's session re-created by its client from the last belief."""
 from __future__ import annotations
 
 import contextlib
+import shlex
 import signal
 import subprocess
 import sys
@@ -221,3 +222,44 @@ def test_a_hung_service_s_timeout_is_no_reply_and_failover_retries_it() -> None:
     finally:
         queryable.undeclare()
         session.close()
+
+
+def test_the_protocol_documents_fleet_commands_and_client_mode_run_as_written(
+    models, flight, tmp_path
+) -> None:
+    """docs/protocol.md's two-machine commands and its client-mode zenoh configuration, run
+    on loopback with the documented addresses replaced by free ports: a router, a service
+    in peer mode on each "machine", a third service and the robot's session in client mode,
+    one fleet of three that serves a blimp."""
+    from tests.doc_blocks import blocks
+
+    page = blocks(Path(__file__).resolve().parents[1] / "docs" / "protocol.md")
+    [commands] = [text for lang, text, _ in page if lang == "sh"]
+    [config] = [text for lang, text, _ in page if lang == "json5"]
+    router = f"127.0.0.1:{free_port()}"
+    swap = {"192.0.2.10:7447": router, "models/": f"{models}/"}
+    swap |= {f"127.0.0.1:{p}": f"127.0.0.1:{free_port()}" for p in (7450, 7451)}
+    (tmp_path / "service.json5").write_text(config.replace("192.0.2.10:7447", router))
+    lines = [line for line in commands.splitlines() if line.strip() and not line.startswith("#")]
+    lines.append(f"gpbf serve --models {models} --zenoh-config service.json5")  # the text after it
+    procs = []
+    try:
+        for line in lines:
+            for a, b in swap.items():
+                line = line.replace(a, b)
+            gpbf, *args = shlex.split(line)
+            assert gpbf == "gpbf", line
+            out = {"stdout": subprocess.PIPE, "stderr": subprocess.STDOUT, "text": True}
+            procs.append(subprocess.Popen([sys.executable, "-m", "agents.cli", *args], cwd=tmp_path, **out))
+            first = procs[-1].stdout.readline()
+            assert "mode router" in first or "ready" in first, (line, first)
+        assert "mode client" in first
+        session = open_session(config_file=tmp_path / "service.json5")  # the robot's side
+        _wait_for_fleet(session, 3)
+        c = EstimatorClient(session, "documented")
+        c.reset(flight.state[0], STD, t=float(flight.t[0]))
+        assert c.step(flight.control[0], [], float(flight.t[1]))["t"] == pytest.approx(flight.t[1])
+        session.close()
+    finally:
+        for p in procs:
+            p.kill()
