@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import shutil
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -28,6 +30,7 @@ from estimator_service.training import TrainSettings, train_models
 
 ROOT = Path(__file__).resolve().parents[1]
 STD = np.full(12, 0.1)
+USERS = ("pilot", "viewer", "alice", "bob")  # the example's clients
 
 
 @pytest.fixture(scope="module")
@@ -138,3 +141,70 @@ def test_a_tenant_drives_only_its_own_blimps_and_cannot_lock_others_out(models: 
             s.close()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=20)
+
+
+def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path) -> None:
+    """The same ``service.json5`` on a router in between, the services in zenoh's client mode
+    (``service-client.json5``) and the clients connected to the router only: the router
+    checks each client's rights, so the pilot drives, a tenant
+    drives only its own blimps, a viewer only reads and cannot join the fleet, and a client
+    without credentials is not let in."""
+    for f in (ROOT / "docs" / "examples" / "secure").iterdir():
+        shutil.copy(f, tmp_path / f.name)
+    port = free_port()
+    router = subprocess.Popen(
+        [sys.executable, "-m", "estimator_service", "router", "--listen", f"tcp/127.0.0.1:{port}",
+         "--zenoh-config", "service.json5"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    endpoint, started, opened = [f"tcp/127.0.0.1:{port}"], [router], []
+    try:
+        assert "mode router" in router.stdout.readline()
+        for _ in range(2):
+            options = ("--model", "param", "--zenoh-config", "service-client.json5", "--connect", endpoint[0])
+            proc, ready = spawn_service(models, free_port(), *options, cwd=tmp_path)
+            assert "mode client" in ready
+            started.append(proc)
+        sessions = {u: open_session(endpoint, config_file=tmp_path / f"{u}.json5") for u in USERS}
+        opened += sessions.values()
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            views = list_sessions(sessions["viewer"])
+            if len(views) == 2 and all(len(v["fleet"]) == 2 for v in views):
+                break
+            time.sleep(0.5)
+        assert len(views) == 2 and all(len(v["fleet"]) == 2 for v in views), views
+        pilot = EstimatorClient(sessions["pilot"], "guarded", timeout=1.5)
+        assert pilot.reset(np.zeros(12), STD)["t"] == 0.0 and pilot.step(np.zeros(3), [], 0.25)["t"] == 0.25
+        alice = EstimatorClient(sessions["alice"], "alice.one", timeout=1.5)
+        assert alice.reset(np.zeros(12), STD)["t"] == 0.0
+        for user, blimp in (
+            ("viewer", "guarded"),
+            ("alice", "guarded"),
+            ("alice", "bob.one"),
+            ("bob", "alice.one"),
+        ):
+            with pytest.raises(NoReply):
+                EstimatorClient(sessions[user], blimp, timeout=1.5).reset(np.zeros(12), STD)
+        assert EstimatorClient(sessions["viewer"], "guarded", timeout=1.5).status()["steps"] == 1
+        fake = "viewer-as-service"  # a viewer's token and hello answer do not join the fleet
+        hello = encode({"v": PROTOCOL_VERSION, "service": fake, "hello": True})
+        viewer = sessions["viewer"]
+        answer = viewer.declare_queryable(
+            keys.hello_key(fake), lambda q: q.reply(keys.hello_key(fake), hello)
+        )
+        token = viewer.liveliness().declare_token(keys.liveliness_key(fake))
+        time.sleep(1.0)
+        assert all(len(v["fleet"]) == 2 for v in list_sessions(sessions["pilot"]))
+        token.undeclare()
+        answer.undeclare()
+        stranger = open_session(endpoint)  # no credentials: the router does not let it in
+        opened.append(stranger)
+        with pytest.raises(NoReply):
+            EstimatorClient(stranger, "guarded", timeout=1.5).status()
+        assert pilot.step(np.zeros(3), [], 0.5)["t"] == 0.5
+    finally:
+        for s in opened:
+            s.close()
+        for p in started:
+            p.kill()
