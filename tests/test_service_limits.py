@@ -552,12 +552,12 @@ EDGES = {
     "session_ttl_s": (0.0, -1e-9),
     "max_sessions": (1, 0),
     "evict_idle_s": (0.0, -1e-9),
-    "session_quota": (1, 0),
+    "session_quota": (0, -1),
     "fence_after_s": (1e-9, 0.0),
     "catch_up_share": (1e-9, 0.0),
     "catch_up_burst_s": (1e-9, 0.0),
     "catch_up_slice_s": (1e-9, 0.0),
-    "tenant_catch_up_share": (1e-9, 0.0),
+    "tenant_catch_up_share": (0.0, -1e-9),
 }
 
 
@@ -756,3 +756,7 @@ def test_one_tenants_catch_ups_use_only_its_share_of_the_services_budget() -> No
     clock.now += 100.0  # every bucket full again: a fourth tenant forgets the full ones
     assert b.take("d", 0.0) is None and b.available("d") == 2.0
     assert b.take("a", 2.0) is None  # a's bucket starts full like a new one's
+    whole = CatchUpBudget(rate=0.5, tenant_rate=None, burst=2.0, clock=clock)  # no tenant parts
+    assert whole.take("a", 2.0) is None and whole.take("b", 0.1) == ("--catch-up-share", 0.5, 0.0)
+    whole.settle("a", 2.0, 1.0)
+    assert whole.available("b") == whole.service.available() == pytest.approx(1.0)

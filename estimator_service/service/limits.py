@@ -83,7 +83,8 @@ class Limits:
         session idle for ``evict_idle_s``; at the quota it is refused otherwise, naming the
         tenant. With ``max_sessions >= session_quota x tenants``, a tenant whose identity the
         access configuration binds to its ids (``gpbf/<tenant>.$*/...``) cannot lock others
-        out, however many resets it sends.
+        out, however many resets it sends. 0 (the default): no quota, so a service of one
+        tenant keeps its whole table; an operator of several tenants sets it.
     fence_after_s
         A service whose own clock shows it was frozen (stopped, swapped out) for longer than
         this forgets every session on waking: the fleet may have given its blimps to others
@@ -107,6 +108,7 @@ class Limits:
         bursts up to ``catch_up_burst_s``; the service's bucket holds ``catch_up_burst_s x
         catch_up_share / tenant_catch_up_share``: :class:`CatchUpBudget`): a tenant's
         near-horizon chains exhaust its own share and leave the rest to the others' catch-ups.
+        0 (the default): no part of its own, a tenant may use the whole budget.
     catch_up_slice_s
         A catch-up gives its worker to the other sessions after this many seconds of work and
         continues on its session's next turn (its predictions kept aside, nothing adopted
@@ -125,11 +127,11 @@ class Limits:
     session_ttl_s: float = 600.0
     max_sessions: int = 4096
     evict_idle_s: float = 30.0
-    session_quota: int = 1024
+    session_quota: int = 0
     fence_after_s: float = SERVICE_LEASE_MS / 2000
     catch_up_share: float = 0.5
     catch_up_burst_s: float = 2.0
-    tenant_catch_up_share: float = 0.25
+    tenant_catch_up_share: float = 0.0
     catch_up_slice_s: float = 0.02
 
     def __post_init__(self) -> None:
@@ -140,11 +142,11 @@ class Limits:
             "max_controls": self.max_controls >= 1, "gate_p": 0 <= self.gate_p < 1,
             "session_ttl_s": self.session_ttl_s >= 0,
             "max_sessions": self.max_sessions >= 1,
-            "evict_idle_s": self.evict_idle_s >= 0, "session_quota": self.session_quota >= 1,
+            "evict_idle_s": self.evict_idle_s >= 0, "session_quota": self.session_quota >= 0,
             "fence_after_s": self.fence_after_s > 0,
             "catch_up_share": self.catch_up_share > 0,
             "catch_up_burst_s": self.catch_up_burst_s > 0, "catch_up_slice_s": self.catch_up_slice_s > 0,
-            "tenant_catch_up_share": self.tenant_catch_up_share > 0,
+            "tenant_catch_up_share": self.tenant_catch_up_share >= 0,
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -173,14 +175,14 @@ OPTIONS = (
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
     ("--evict-idle", "evict_idle_s", checked_float(0.0, 1e9),
      "seconds idle after which a session may be closed for a new blimp at the session cap"),
-    ("--session-quota", "session_quota", checked_int(1, 1_000_000),
-     "sessions per tenant (a blimp id's part before '.'; ids without one share one tenant)"),
+    ("--session-quota", "session_quota", checked_int(0, 1_000_000),
+     "sessions per tenant (a blimp id's part before '.'; ids without one share one tenant; 0: none)"),
     ("--fence-after", "fence_after_s", checked_float(0.0, 1e6, low_open=True),
      "seconds frozen after which a waking service forgets its sessions (its blimps may have moved)"),
     ("--catch-up-share", "catch_up_share", checked_float(0.0, 64.0, low_open=True),
      "seconds of catch-up predictions per second, over all sessions (frames beyond it: refused)"),
-    ("--tenant-catch-up-share", "tenant_catch_up_share", checked_float(0.0, 64.0, low_open=True),
-     "seconds of catch-up work per second one tenant's frames may use (of --catch-up-share)"),
+    ("--tenant-catch-up-share", "tenant_catch_up_share", checked_float(0.0, 64.0),
+     "seconds of catch-up work per second one tenant's frames may use (of --catch-up-share; 0: all)"),
     ("--catch-up-burst", "catch_up_burst_s", checked_float(0.0, 3600.0, low_open=True),
      "seconds of catch-up predictions available at once"),
     ("--catch-up-slice", "catch_up_slice_s", checked_float(0.0, 60.0, low_open=True),
@@ -249,14 +251,18 @@ class CatchUpBudget:
     it is a new one's equal), when more than ``max_tenants`` are held."""
 
     def __init__(
-        self, rate: float, tenant_rate: float, burst: float, clock=time.monotonic, max_tenants: int = 4096
-    ) -> None:
-        self.service = WorkBudget(rate, burst * max(1.0, rate / tenant_rate), clock)
+        self, rate: float, tenant_rate: float | None, burst: float, clock=time.monotonic,
+        max_tenants: int = 4096,
+    ) -> None:  # fmt: skip
+        """``tenant_rate`` None: no tenant has a part of its own (the service's bucket alone)."""
+        self.service = WorkBudget(rate, burst * max(1.0, rate / (tenant_rate or rate)), clock)
         self.tenant_rate, self.burst, self.max_tenants, self._clock = tenant_rate, burst, max_tenants, clock
         self._tenants: dict[str, WorkBudget] = {}
         self._lock = threading.Lock()
 
-    def _own(self, tenant: str) -> WorkBudget:
+    def _own(self, tenant: str) -> WorkBudget | None:
+        if self.tenant_rate is None:
+            return None
         with self._lock:
             own = self._tenants.get(tenant)
             if own is None:
@@ -269,20 +275,24 @@ class CatchUpBudget:
         """Reserve ``estimate_s`` for ``tenant``: None when reserved, else ``(option, rate,
         available)`` of the budget that refused it (nothing reserved)."""
         own = self._own(tenant)
-        if own.take(estimate_s) is None:
+        if own is not None and own.take(estimate_s) is None:
             return "--tenant-catch-up-share", own.rate, own.available()
         if self.service.take(estimate_s) is None:
-            own.settle(estimate_s, 0.0)
+            if own is not None:
+                own.settle(estimate_s, 0.0)
             return "--catch-up-share", self.service.rate, self.service.available()
         return None
 
     def available(self, tenant: str) -> float:
         """What ``tenant`` may reserve now: the smaller of its own and the service's budget."""
-        return min(self._own(tenant).available(), self.service.available())
+        own = self._own(tenant)
+        return min(own.available() if own is not None else math.inf, self.service.available())
 
     def settle(self, tenant: str, estimate_s: float, actual_s: float) -> None:
         """The work ``tenant`` reserved at ``estimate_s`` cost ``actual_s``."""
-        self._own(tenant).settle(estimate_s, actual_s)
+        own = self._own(tenant)
+        if own is not None:
+            own.settle(estimate_s, actual_s)
         self.service.settle(estimate_s, actual_s)
 
 

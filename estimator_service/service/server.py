@@ -105,7 +105,10 @@ class EstimatorService:
         self.system = read_system(config.model_dir)
         lim = config.limits
         budget = CatchUpBudget(
-            lim.catch_up_share, lim.tenant_catch_up_share, lim.catch_up_burst_s, max_tenants=lim.max_sessions
+            lim.catch_up_share,
+            lim.tenant_catch_up_share or None,
+            lim.catch_up_burst_s,
+            max_tenants=lim.max_sessions,
         )
         queued = ByteMeter(config.limits.total_queue_bytes)
         self._settings = SessionSettings(self.system, config.limits, budget, queued)
@@ -224,7 +227,8 @@ class EstimatorService:
         (a table filled by resets never followed by input frees up within that time)."""
         lim, tenant = self.config.limits, keys.tenant(blimp)
         wait = f"none idle for {lim.evict_idle_s:g} s (--evict-idle): close sessions ('close') or wait"
-        if self._tenant_count(tenant) >= lim.session_quota and not self._evict_idlest(tenant):
+        at_quota = lim.session_quota and self._tenant_count(tenant) >= lim.session_quota
+        if at_quota and not self._evict_idlest(tenant):
             quota = f"quota of {lim.session_quota} sessions (--session-quota)"
             return f"tenant {tenant!r} holds its {quota} and {wait}"
         if len(self._sessions) >= lim.max_sessions:
