@@ -747,14 +747,21 @@ def test_one_tenants_catch_ups_use_only_its_share_of_the_services_budget() -> No
     assert b.take("a", 2.0) is None and b.take("a", 0.1) == ("--tenant-catch-up-share", 0.25, 0.0)
     assert b.available("b") == 2.0 and b.take("b", 1.5) is None  # what a left: a whole burst
     assert b.take("c", 0.6) == ("--catch-up-share", 0.5, pytest.approx(0.5))
-    assert b.available("c") == pytest.approx(0.5)  # nothing taken from c's bucket
+    assert b.available("c") == pytest.approx(0.5)  # nothing taken from c's bucket ...
+    b.settle("b", 1.5, 0.0)  # (b's reservation cost nothing: the service has 2 s again)
+    assert b.available("c") == pytest.approx(2.0)  # ... its own bucket is full
+    assert b.take("b", 1.5) is None
     clock.now += 4.0  # the service refills 2 s; a 1 s, b 1 s
     assert b.take("a", 1.5) == ("--tenant-catch-up-share", 0.25, pytest.approx(1.0))
     assert b.take("a", 1.0) is None and b.available("b") == pytest.approx(1.5)
     b.settle("a", 1.0, 0.25)  # a's unspent work comes back to both
     assert b.available("a") == pytest.approx(0.75) and b.service.available() == pytest.approx(2.25)
+    assert b.held == 3  # a, b, c: the third came while none of two was full
     clock.now += 100.0  # every bucket full again: a fourth tenant forgets the full ones
-    assert b.take("d", 0.0) is None and b.available("d") == 2.0
+    assert b.take("d", 0.0) is None and b.available("d") == 2.0 and b.held == 1
+    assert b.take("d", 1.0) is None and b.available("e") == 2.0 and b.held == 2  # d is refilling
+    clock.now += 100.0
+    assert b.available("f") == 2.0 and b.held == 1  # at two again, the full ones go
     assert b.take("a", 2.0) is None  # a's bucket starts full like a new one's
     whole = CatchUpBudget(rate=0.5, tenant_rate=None, burst=2.0, clock=clock)  # no tenant parts
     assert whole.take("a", 2.0) is None and whole.take("b", 0.1) == ("--catch-up-share", 0.5, 0.0)

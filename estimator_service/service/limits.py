@@ -260,6 +260,12 @@ class CatchUpBudget:
         self._tenants: dict[str, WorkBudget] = {}
         self._lock = threading.Lock()
 
+    @property
+    def held(self) -> int:
+        """Tenants' buckets held now (at most ``max_tenants`` plus those still refilling)."""
+        with self._lock:
+            return len(self._tenants)
+
     def _own(self, tenant: str) -> WorkBudget | None:
         if self.tenant_rate is None:
             return None
