@@ -263,6 +263,11 @@ def test_inverse_factor_refuses_an_ill_conditioned_factor() -> None:
     l = np.asfortranarray(np.diag([1.0, 1e-5, 1e-6]))
     assert inverse_factor(l, max_cond=1e4) is None  # condition 1e6: the solve is kept
     np.testing.assert_allclose(inverse_factor(l, max_cond=1e7) @ l, np.eye(3), atol=1e-12)
+    exact = np.asfortranarray(np.diag([1.0, 0.25]))  # condition exactly 4 (powers of two)
+    np.testing.assert_array_equal(
+        inverse_factor(exact, max_cond=4.0), np.diag([1.0, 4.0])
+    )  # at the limit: kept
+    assert inverse_factor(exact, max_cond=np.nextafter(4.0, 0.0)) is None  # just past it: refused
 
 
 # -- sparse, heteroscedastic, enhanced ---------------------------------------------------
@@ -633,3 +638,23 @@ def test_the_polish_on_all_points_reports_its_progress(toy) -> None:
     seen = []
     fit_exact(x, y[:, 0], restarts=1, max_iter=3, hyper_points=30, polish_iter=3, callback=seen.append)
     assert sum(s.iteration == 1 for s in seen) == 2
+
+
+def test_the_polish_on_all_points_searches_inside_the_same_bounds(toy, monkeypatch) -> None:
+    """The polish is an L-BFGS-B search in the same box as the subset's search: its result
+    stays inside the hyperparameter bounds (each search is given them)."""
+    from estimator_service.gp import hyper
+
+    x, y = toy
+    real, boxes = hyper.optimize_theta, []
+
+    def spy(objective, starts, bounds, *args):
+        boxes.append(bounds)
+        return real(objective, starts, bounds, *args)
+
+    monkeypatch.setattr(hyper, "optimize_theta", spy)
+    gp = fit_exact(x, y[:, 0], restarts=1, max_iter=3, hyper_points=30, polish_iter=3)
+    box = hyper.theta_bounds(x.shape[1])
+    assert boxes == [box, box]
+    lo, hi = np.array(box).T
+    assert np.all((lo <= gp.theta) & (gp.theta <= hi))

@@ -465,6 +465,45 @@ def test_the_odes_forces_and_moments_are_the_documented_ones() -> None:
     np.testing.assert_allclose(j * rate[:, 9:12], moment - np.cross(w, j * w), atol=1e-6)
 
 
+def test_ode_fit_starts_at_the_given_parameters(flight) -> None:
+    """A fit started at the parameters that made the data stops there: its start is the
+    given point, parameters below 1 included (fitted in log space)."""
+    assert np.any(flight["true"] < 1.0)
+    fit = fit_blimp_ode(flight["x"][:100], flight["u"][:100], flight["x_next"][:100],
+                        initial=flight["true"], max_nfev=1)  # fmt: skip
+    np.testing.assert_allclose(fit.params, flight["true"], rtol=1e-12, atol=1e-15)
+
+
+def test_ode_fit_minimises_each_states_error_over_its_spread(flight) -> None:
+    """On noisy transitions (the weighting then matters) the fit is a stationary point of
+    the documented objective, the one-step errors each divided by its state's standard
+    deviation of change: central differences of that sum of squares in the fitted
+    coordinates (log of the positive parameters) vanish at the fit (1e-4 here; weighting by
+    the spread instead of dividing leaves 33)."""
+    from estimator_service.angles import wrap_angle
+    from estimator_service.models.blimp import _SIGNED, PARAM_NAMES
+
+    rng = np.random.default_rng(0)
+    x, u = flight["x"][:200], flight["u"][:200]
+    change = flight["x_next"][:200] - x
+    noisy = flight["x_next"][:200] + rng.normal(size=x.shape) * 0.3 * change.std(axis=0)
+    fit = fit_blimp_ode(x, u, noisy)
+    target = noisy - x
+    target[:, 3:6] = wrap_angle(target[:, 3:6])
+    scale, signed = target.std(axis=0), np.array([n in _SIGNED for n in PARAM_NAMES])
+
+    def objective(z: np.ndarray) -> float:
+        params = np.where(signed, z, np.exp(z))
+        err = (BlimpODE(params, np.ones(12), 0.44, 0.8, 0.25).change(x, u) - target) / scale
+        return float(np.sum(err * err))
+
+    def gradient(params: np.ndarray) -> np.ndarray:
+        z, h = np.where(signed, params, np.log(np.abs(params))), 1e-5
+        return np.array([(objective(z + h * e) - objective(z - h * e)) / (2 * h) for e in np.eye(16)])
+
+    assert np.abs(gradient(fit.params)).max() < 1e-6 * np.abs(gradient(DEFAULT_PARAMS)).max()
+
+
 def test_ode_fit_at_another_step_from_a_given_start(flight) -> None:
     """One-step data at dt = 0.5 s are fitted by a model stepping 0.5 s (not the default
     0.25 s), starting from the guess given."""
