@@ -194,3 +194,32 @@ def test_fig3_log_likelihood_is_the_papers_over_successful_runs_only() -> None:
     assert mixed["ekf"]["mll_successful"][0] == pytest.approx(10.0) and mixed["ekf"]["failed"][
         0
     ] == pytest.approx(0.5)
+
+
+def test_fig5_compares_the_heteroscedastic_and_regular_uncertainty_while_the_tail_runs() -> None:
+    """Each of Fig. 5's three checks follows its own figure: higher (hetGP over GP while the
+    tail is active), more variable (coefficient of variation) and rising more (active over
+    the rest), each a strict comparison of the mean over the states; the paper's claims
+    include them."""
+    from agents.experiments.report import _fig5_checks
+
+    def figures(het_on: float, het_cv: float, gp_on: float = 1.0) -> dict:
+        out = {}
+        for kind, on, cv in (("hetgp", het_on, het_cv), ("gp", gp_on, 0.1)):
+            for state in ("v", "r"):
+                out[f"{kind} {state}: sd while the tail is active"] = on
+                out[f"{kind} {state}: sd otherwise"] = 1.0
+                out[f"{kind} {state}: sd variation while the tail is active"] = cv
+        return out
+
+    def verdicts(f5: dict) -> dict:
+        return {key: ok for key, _, ok in _fig5_checks(f5)}
+
+    keys = ("fig5_hetgp_higher_when_tail_active", "fig5_hetgp_more_variable_when_tail_active",
+            "fig5_hetgp_follows_the_tail")  # fmt: skip
+    assert verdicts(figures(1.5, 0.3)) == dict.fromkeys(keys, True)
+    assert verdicts(figures(1.0, 0.3)) == {keys[0]: False, keys[1]: True, keys[2]: False}  # equal: not higher
+    assert verdicts(figures(1.5, 0.1)) == {keys[0]: True, keys[1]: False, keys[2]: True}
+    assert verdicts(figures(2.0, 0.3, gp_on=2.5)) == {keys[0]: False, keys[1]: True, keys[2]: False}
+    assert _fig5_checks({}) == []
+    assert set(keys) <= {k for k, _, _ in claims({"tracking": {}, "table5_6": {}, "fig5": figures(1.5, 0.3)})}

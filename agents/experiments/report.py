@@ -18,8 +18,18 @@ from estimator_service.tracking import GROUPS, consistency_band
 
 FIG3_FILE = "fig3_training_points.png"  # written by the reproduce run, shown by the report
 FIG4_FILE = "fig4_left_turns.png"
+FIG5_FILE = "fig5_tail_uncertainty.png"
 
-__all__ = ["FIG3_FILE", "FIG4_FILE", "SHARP_ANGLE_SD_DEG", "beyond", "claims", "verdicts", "write_report"]
+__all__ = [
+    "FIG3_FILE",
+    "FIG4_FILE",
+    "FIG5_FILE",
+    "SHARP_ANGLE_SD_DEG",
+    "beyond",
+    "claims",
+    "verdicts",
+    "write_report",
+]
 
 #: a containment claim counts only for a sharp belief: an angle's standard deviation at most half
 #: that of a belief that knows nothing (uniform on the circle: 360 / sqrt(12) = 103.9 deg)
@@ -203,7 +213,7 @@ def _scales_line(res: dict) -> list[str]:
 
 
 def claims(res: dict) -> list[tuple[str, str, bool]]:
-    """The paper's results (Tables 5-10, Fig. 4) checked on ``res``: ``(key, text with the
+    """The paper's results (Tables 5-10, Figs. 3-5) checked on ``res``: ``(key, text with the
     figures, the rule and its tolerance, holds)``; what the paper does not claim is in
     :func:`beyond`."""
     tr, t5 = res["tracking"], res["table5_6"]
@@ -223,7 +233,7 @@ def claims(res: dict) -> list[tuple[str, str, bool]]:
     for f in sorted({k.split("/")[0] for k in tr}):
         checks += _filter_checks(tr, f)
     checks += _ukf_checks(tr) + _table9_checks(tr) + _fig3_checks(res.get("fig3") or {})
-    checks += _fig4_checks(res.get("fig4", {}))
+    checks += _fig4_checks(res.get("fig4", {})) + _fig5_checks(res.get("fig5", {}))
     return checks + _table10_check(res.get("table10", {}), "", "table10_ukf_worst", "Table 10")
 
 
@@ -373,6 +383,38 @@ def _fig4_checks(f4: dict) -> list[tuple[str, str, bool]]:
          f"Fig. 4: the truth stays within 3 sigma in those left turns ({100 * inside:.0f}% of steps, at "
          f"least 95%) with a sharp belief (yaw sd {sd:.0f} deg, at most {SHARP_ANGLE_SD_DEG:.0f}: half a "
          "belief that knows nothing)", inside >= 0.95 and sharp),
+    ]  # fmt: skip
+
+
+def _fig5_checks(f5: dict) -> list[tuple[str, str, bool]]:
+    """Fig. 5: while the tail motor is active, the heteroscedastic GP-UKF's uncertainty of
+    the sideways and rotational velocities is higher than the regular GP-UKF's, varies more,
+    and rises more over the rest of the flight; each a strict comparison of the geometric
+    mean over those states of the ratios (the variation: the mean coefficient of variation)."""
+    on, off, cv = "sd while the tail is active", "sd otherwise", "sd variation while the tail is active"
+    states = sorted({k.split(": ")[0].split(" ", 1)[1] for k in f5 if k.startswith("hetgp ")})
+    if not states or any(f"gp {s}: {off}" not in f5 for s in states):
+        return []
+
+    def sd(kind: str, state: str, what: str) -> float:
+        return f5[f"{kind} {state}: {what}"]
+
+    def gmean(values: list[float]) -> float:
+        return float(np.exp(np.mean(np.log(values))))
+
+    higher = gmean([sd("hetgp", x, on) / sd("gp", x, on) for x in states])
+    rise = {k: gmean([sd(k, x, on) / sd(k, x, off) for x in states]) for k in ("hetgp", "gp")}
+    vary = {k: float(np.mean([sd(k, x, cv) for x in states])) for k in ("hetgp", "gp")}
+    active = f"with the tail motor active, the hetGP-UKF's uncertainty ({', '.join(states)})"
+    return [
+        ("fig5_hetgp_higher_when_tail_active",
+         f"Fig. 5: {active} is higher than the GP-UKF's (x{higher:.2f}, more than x1)", higher > 1.0),
+        ("fig5_hetgp_more_variable_when_tail_active",
+         f"Fig. 5: {active} varies more than the GP-UKF's (coefficient of variation "
+         f"{vary['hetgp']:.2f} against {vary['gp']:.2f})", vary["hetgp"] > vary["gp"]),
+        ("fig5_hetgp_follows_the_tail",
+         f"Fig. 5: {active} rises more over the rest of the flight than the GP-UKF's "
+         f"(x{rise['hetgp']:.2f} against x{rise['gp']:.2f})", rise["hetgp"] > rise["gp"]),
     ]  # fmt: skip
 
 
@@ -547,6 +589,18 @@ def write_report(out: Path, res: dict) -> Path:
         "",
     ]
     lines += [f"- {k}: {v:.3f}" for k, v in res["fig4"].items()] + [""]
+    if res.get("fig5"):
+        lines += [
+            "## Fig. 5: heteroscedastic against regular GP uncertainty while the tail motor runs",
+            "",
+            "GP-UKF standard deviations of the sideways velocity v and the rotational velocities "
+            "p, q, r over the first fold's test flight, each over its own mean; shading: the tail "
+            "motor's power (active: |command| > 0.3).",
+            "",
+            f"![fig5]({FIG5_FILE})",
+            "",
+        ]
+        lines += [f"- {k}: {v:.4g}" for k, v in res["fig5"].items()] + [""]
     if res.get("table10"):
         lines += [
             "## Table 10: synthetic landmark robot (position and velocity RMS)",

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.experiments.fig5 import fig5
 from agents.experiments.landmark import table10
 from agents.experiments.parallel import check_jobs, run_all
 from agents.experiments.provenance import provenance
-from agents.experiments.report import FIG3_FILE, FIG4_FILE
+from agents.experiments.report import FIG3_FILE, FIG4_FILE, FIG5_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
@@ -308,6 +309,9 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         "table5_6": {k: mean_sd([f["table5"][k] for f in fold_scores]) for k in one_step},
         "tracking": {k: mean_sd([f["tracking"][k] for f in fold_scores]) for k in fold_scores[0]["tracking"]},
         "fig4": plot_fig4(out / "models_fold0", out / NO_LEFT_TURNS, folds[0][1], out / FIG4_FILE),
+        "fig5": fig5(out / "models_fold0", folds[0][1], out / FIG5_FILE)
+        if {"gp", "hetgp"} <= set(s.kinds)
+        else {},
     }
     results["table10"] = {k: v for k, v in t10.items() if not k.startswith("spread")}
     results["table10_spread"] = {k: v for k, v in t10.items() if k.startswith("spread")}
