@@ -18,6 +18,7 @@ import numpy as np
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
 from estimator_service.tracking import track_flight
+from estimator_service.training import prediction_data
 
 __all__ = ["FIG5_STATES", "TAIL_ACTIVE", "fig5"]
 
@@ -46,20 +47,34 @@ def fig5(folder: Path, test: Flight, path: Path) -> dict[str, float]:
     res: dict[str, float] = {}
     fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     for ax, kind in zip(axes, MODELS, strict=True):
-        r = track_flight(build_filter("ukf", kind, folder), test)
+        ukf = build_filter("ukf", kind, folder)
+        r = track_flight(ukf, test)
         t, on = np.arange(len(r.mean)) * test.dt, active[: len(r.mean)]
         for shade in np.unique(np.round(tail[: len(t)], 1)):  # intensity: the tail's power
             ax.fill_between(t, 0, 1, where=np.round(tail[: len(t)], 1) == shade, color="0.5",
                             alpha=0.5 * float(shade), lw=0, transform=ax.get_xaxis_transform())  # fmt: skip
+        inp, change = prediction_data([test.select(np.arange(len(t) + 1))])  # the transitions tracked
+        one = ukf.prediction.predict(inp[:, :12], inp[:, 12:])
         for name, i in FIG5_STATES.items():
             sd = np.sqrt(r.cov[:, i, i])
             ax.plot(t, sd / sd.mean(), lw=0.8, label=name)
             res[f"{kind} {name}: sd while the tail is active"] = float(sd[on].mean())
             res[f"{kind} {name}: sd otherwise"] = float(sd[~on].mean())
             res[f"{kind} {name}: sd variation while the tail is active"] = float(sd[on].std() / sd[on].mean())
+            res |= _one_step(kind, name, one.mean[:, i] - change[:, i], one.var[:, i], on)
         ax.set(ylabel="sd / its mean", title=f"GP-UKF, {kind} (shading: tail motor power)")
     axes[0].legend(loc="upper right", fontsize=8, ncol=4)
     axes[-1].set_xlabel("time (s)")
     fig.tight_layout()
     save_figure(fig, path)
     return res
+
+
+def _one_step(kind: str, name: str, err: np.ndarray, var: np.ndarray, on: np.ndarray) -> dict[str, float]:
+    """The prediction model's one-step RMS error and RMS predicted sd, tail active over the
+    rest: how much the tail motor changes the motion's noise, and what the model learned of it."""
+    rms = lambda a: float(np.sqrt(np.mean(a)))  # noqa: E731
+    return {
+        f"{kind} {name}: one-step error, tail active over the rest": rms(err[on] ** 2) / rms(err[~on] ** 2),
+        f"{kind} {name}: one-step predicted sd, tail active over the rest": rms(var[on]) / rms(var[~on]),
+    }

@@ -595,7 +595,9 @@ def write_report(out: Path, res: dict) -> Path:
             "",
             "GP-UKF standard deviations of the sideways velocity v and the rotational velocities "
             "p, q, r over the first fold's test flight, each over its own mean; shading: the tail "
-            "motor's power (active: |command| > 0.3).",
+            "motor's power (active: |command| > 0.3). Below the figures, the prediction models' "
+            "one-step errors and predicted standard deviations on the same transitions, tail active "
+            "over the rest: how much the tail changes the motion's noise, and what each model learned.",
             "",
             f"![fig5]({FIG5_FILE})",
             "",

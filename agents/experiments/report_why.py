@@ -131,4 +131,15 @@ WHY = (
         "The simulator's process noise (wind gusts) does not depend on the state, so a "
         "heteroscedastic model has little to gain over the EGP it builds on.",
     ),
+    (
+        "Fig. 5:",
+        "The simulator's process noise barely depends on the tail motor, which on the paper's "
+        "blimp shook the airframe: the one-step figures under Fig. 5 show the regular GP's "
+        "errors of v, p, q, r with the tail active within a few tens of percent of those with "
+        "it off, either way, and the heteroscedastic GP's predicted standard deviations with "
+        "the tail active within about 10 % of the rest (quick run, first fold: 0.79-1.34 and "
+        "0.97-1.06 on the test flight). With nothing to follow, the heteroscedastic GP-UKF's "
+        "uncertainty is lower overall than the regular GP-UKF's (its noise model is sharper) "
+        "and not more variable.",
+    ),
 )
