@@ -55,6 +55,31 @@ class SessionSettings:
 
 
 @dataclass
+class _NisMean:
+    """The running mean of a session's NIS/dof since its reset, with the variance of that
+    mean for a consistent filter (one update's NIS/dof has variance ``2 / dof``)."""
+
+    total: float = 0.0
+    count: int = 0
+    var_sum: float = 0.0
+
+    def add(self, nis: float, dof: int) -> None:
+        self.total += nis / dof
+        self.count += 1
+        self.var_sum += 2.0 / dof
+
+    def mean(self) -> float | None:
+        return self.total / self.count if self.count else None
+
+    def band(self) -> list[float] | None:
+        """The 95 % band a consistent filter's mean falls in after these updates
+        (:func:`~estimator_service.tracking.consistency_band`); None before one."""
+        from estimator_service.tracking import consistency_band
+
+        return list(consistency_band(1.0, self.var_sum / self.count**2)) if self.count else None
+
+
+@dataclass
 class _CatchUp:
     """A camera frame's predictions in progress across worker turns (nothing adopted yet)."""
 
@@ -96,8 +121,7 @@ class Session:
     t: float | None = None
     pool: WorkerPool | None = None
     _timings: deque = field(default_factory=lambda: deque(maxlen=1000))
-    #: running sum of NIS/dof, count, and sum of 2 / dof (a consistent filter's variances)
-    _nis: list = field(default_factory=lambda: [0.0, 0, 0.0])
+    _nis: _NisMean = field(default_factory=_NisMean)
     _step_s: float = 0.0  # this session's measured seconds per prediction step (0: not yet)
     _last_step: tuple[int, float, bytes] | None = None  # (seq, t, reply) of the last step answered
     repeated: int = 0  # step queries answered again from the last reply (clients' retries)
@@ -277,9 +301,7 @@ class Session:
         self._belief, self.t = belief, t
         self.steps += 1
         if info.dof > 0 and math.isfinite(info.nis):
-            self._nis[0] += info.nis / info.dof
-            self._nis[1] += 1
-            self._nis[2] += 2.0 / info.dof  # the variance of one consistent NIS/dof
+            self._nis.add(info.nis, info.dof)
         ms = (time.perf_counter() - t0) * 1e3
         self._timings.append(ms)
         return self._message(g, seq, t, info, ms)
@@ -424,17 +446,9 @@ class Session:
             self._filter = self.make_filter(self.filter_name, self.model_name)
             self._step_s = 0.0  # another filter: its step time is measured afresh
         self._install(GaussianBelief(r.mean, r.cov), r.seed)
-        self.t, self.steps, self._nis = r.t, 0, [0.0, 0, 0.0]
+        self.t, self.steps, self._nis = r.t, 0, _NisMean()
         self._controls.clear()
         return self._message(self._filter.gaussian(self._belief), r.seq, r.t, StepInfo(), 0.0)
-
-    def _nis_band(self) -> list[float] | None:
-        """The 95 % band a consistent filter's ``nis_per_dof_mean`` falls in after these
-        updates (:func:`~estimator_service.tracking.consistency_band`); None before one."""
-        from estimator_service.tracking import consistency_band
-
-        _, count, var = self._nis
-        return list(consistency_band(1.0, var / count**2)) if count else None
 
     def _status(self) -> bytes:
         ms = np.array(self._timings) if self._timings else np.zeros(1)
@@ -443,8 +457,7 @@ class Session:
             "model_version": self.model_version, "steps": self.steps, "rejected": self.rejected,
             "late": self.late, "dropped": self.dropped, "gated": self.gated,
             "refused_catch_up": self.refused_catch_up, "repeated": self.repeated,
-            "nis_per_dof_mean": self._nis[0] / self._nis[1] if self._nis[1] else None,
-            "nis_per_dof_band": self._nis_band(),
+            "nis_per_dof_mean": self._nis.mean(), "nis_per_dof_band": self._nis.band(),
             "batched": self.batched, "t": self.t, "queue": len(self._inbox),
             "timings": {"count": len(self._timings), "step_ms_p50": float(np.median(ms)),
                         "step_ms_p99": float(np.percentile(ms, 99))},
