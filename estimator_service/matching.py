@@ -382,9 +382,18 @@ def choose_by_likelihood(
     held-out log-likelihood of the truth that beats the raw (uncalibrated) models' and raises
     their RMS by at most :data:`RMS_TOLERANCE`. Every candidate of a block is tracked in one
     batched run."""
+    return _first_pass(blocks, scale, obs_scale, family)[-1]
+
+
+def _first_pass(
+    blocks: Sequence[Block], scale: FloatArray, obs_scale: FloatArray, family: str
+) -> tuple[dict[Candidate, Shape], dict[Candidate, HeldOut], HeldOut, LikelihoodChoice]:
+    """:func:`choose_by_likelihood`'s candidates, their scores (the raw models' apart) and
+    its choice."""
     candidates = _candidates(scale, obs_scale, family)
     scored = _score(blocks, candidates)
-    return _choose(scored, candidates, scored.pop(RAW))
+    base = scored.pop(RAW)
+    return candidates, scored, base, _choose(scored, candidates, base)
 
 
 def calibrate_by_likelihood(
@@ -406,10 +415,7 @@ def calibrate_by_likelihood(
     the inverse of its leverage (about the square for a state the sensors pin) scored lower
     on every kind's held-out blocks (200-point models: 26.92 vs 27.17 for gp, 26.93 vs 27.40
     for sparse) and was dropped."""
-    candidates = _candidates(start, obs_scale, "one-step")
-    scored = _score(blocks, candidates)
-    base = scored.pop(RAW)
-    first = _choose(scored, candidates, base)
+    candidates, scored, base, first = _first_pass(blocks, start, obs_scale, "one-step")
     if on_pass is not None:
         on_pass("first pass")
     if not math.isfinite(first.chosen.mll):
