@@ -4,6 +4,7 @@ real service."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import signal
 import subprocess
@@ -49,17 +50,30 @@ def _client(endpoint: list[str], config: Path | None, blimp: str):
     return session, EstimatorClient(session, blimp, timeout=1.5)
 
 
-def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -> None:
+@contextlib.contextmanager
+def _secure_service(models: Path, folder: Path, *options: str):
+    """The secure example's files copied into ``folder`` and a service run from there with
+    ``service.json5`` and ``options``: ``(endpoint, ready line, sessions to close)``; the
+    sessions appended to the list are closed and the service stopped on leaving."""
     for f in (ROOT / "docs" / "examples" / "secure").iterdir():
-        shutil.copy(f, tmp_path / f.name)
+        shutil.copy(f, folder / f.name)
     port = free_port()
     proc, ready = spawn_service(
-        models, port, "--model", "param", "--zenoh-config", "service.json5", cwd=tmp_path
+        models, port, "--model", "param", "--zenoh-config", "service.json5", *options, cwd=folder
     )
-    endpoint = [f"tcp/127.0.0.1:{port}"]
-    opened = []
+    opened: list = []
     try:
-        assert f"listening on ['tcp/127.0.0.1:{port}']" in ready
+        yield [f"tcp/127.0.0.1:{port}"], ready, opened
+    finally:
+        for s in opened:
+            s.close()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=20)
+
+
+def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -> None:
+    with _secure_service(models, tmp_path) as (endpoint, ready, opened):
+        assert f"listening on ['{endpoint[0]}']" in ready
         s, pilot = _client(endpoint, tmp_path / "pilot.json5", "guarded")
         opened.append(s)
         pilot.reset(np.zeros(12), STD)
@@ -89,27 +103,14 @@ def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -
         assert view["fleet"] == [view["service"]], view
         token.undeclare()
         answer.undeclare()
-    finally:
-        for s in opened:
-            s.close()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=20)
 
 
 def test_a_tenant_drives_only_its_own_blimps_and_cannot_lock_others_out(models: Path, tmp_path: Path) -> None:
     """The example's tenants: "alice" may reset and step only ids ``alice.<name>`` (the ACL
     binds the tenant to the logged-in user), and however many resets she sends she holds at
     most ``--session-quota`` sessions, so "bob" and the operator still get theirs."""
-    for f in (ROOT / "docs" / "examples" / "secure").iterdir():
-        shutil.copy(f, tmp_path / f.name)
-    port = free_port()
     quota = ("--session-quota", "3", "--max-sessions", "7")
-    proc, _ = spawn_service(
-        models, port, "--model", "param", "--zenoh-config", "service.json5", *quota, cwd=tmp_path
-    )
-    endpoint = [f"tcp/127.0.0.1:{port}"]
-    opened = []
-    try:
+    with _secure_service(models, tmp_path, *quota) as (endpoint, _, opened):
         alice = open_session(endpoint, config_file=tmp_path / "alice.json5")
         bob = open_session(endpoint, config_file=tmp_path / "bob.json5")
         pilot = open_session(endpoint, config_file=tmp_path / "pilot.json5")
@@ -136,11 +137,6 @@ def test_a_tenant_drives_only_its_own_blimps_and_cannot_lock_others_out(models: 
         blimps = sorted(s["blimp"] for s in view["sessions"])
         assert blimps == ["alice.0", "alice.1", "alice.2", "bob.0", "bob.1", "bob.2", "guarded"]
         assert all(s["steps"] == 0 for s in view["sessions"] if s["blimp"] != "alice.0")
-    finally:
-        for s in opened:
-            s.close()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=20)
 
 
 def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path) -> None:
