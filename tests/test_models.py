@@ -499,7 +499,8 @@ def test_ode_fit_minimises_each_states_error_over_its_spread(flight) -> None:
 
     def gradient(params: np.ndarray) -> np.ndarray:
         z, h = np.where(signed, params, np.log(np.abs(params))), 1e-5
-        return np.array([(objective(z + h * e) - objective(z - h * e)) / (2 * h) for e in np.eye(16)])
+        steps = np.eye(len(PARAM_NAMES))
+        return np.array([(objective(z + h * e) - objective(z - h * e)) / (2 * h) for e in steps])
 
     assert np.abs(gradient(fit.params)).max() < 1e-6 * np.abs(gradient(DEFAULT_PARAMS)).max()
 

@@ -385,8 +385,7 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
     refuses what it cannot afford and a catch-up gives its worker back every slice, so a
     healthy blimp's lock-step steps stay fast; without both (``unbounded``: the budget opened
     wide, one 60 s slice) the same chains stall them."""
-    opened = ("--catch-up-share", "64", "--tenant-catch-up-share", "64", "--catch-up-burst", "3600",
-              "--catch-up-slice", "60")  # fmt: skip
+    opened = ("--catch-up-share", "64", "--catch-up-burst", "3600", "--catch-up-slice", "60")
     wide = opened if unbounded else ()
     svc = Running(models, "--particles", "8000", *wide)  # frames of ~0.3 s each here
     try:
@@ -409,7 +408,8 @@ def test_chains_of_frames_inside_the_horizon_cannot_stall_a_healthy_blimp(models
         assert times[-2] < 600.0, times[-5:]
         refused = sum(a.status()["refused_catch_up"] for a in attackers)
         errors = [e["error"] for a in attackers for e in a.errors(wait=0.2)]
-        assert refused > 0 and any("catch-up-share)" in e for e in errors), (refused, errors[:2])
+        named = [e for e in errors if re.search(r"\(--catch-up-(burst|share)\)", e)]  # the limit that refused
+        assert refused > 0 and named, (refused, errors[:2])
     finally:
         svc.proc.kill()
         svc.session.close()
@@ -510,30 +510,42 @@ def test_a_tenant_at_its_quota_gives_up_its_own_idlest_session_never_another_ten
     """Blimp ids ``<tenant>.<name>`` count against their tenant's ``--session-quota``: a tenant
     at its quota is refused while its sessions are busy, and once one is idle for
     ``--evict-idle`` its new blimp closes that tenant's least recently used session, even
-    when another tenant's session has been idle longer; the other tenant keeps its room."""
-    svc = Running(models, "--max-sessions", "5", "--session-quota", "2", "--evict-idle", "0.5")
+    when another tenant's session has been idle longer; at the session cap a new blimp
+    closes its own tenant's idle session first, else the one idle the longest."""
+    svc = Running(models, "--max-sessions", "5", "--session-quota", "2", "--evict-idle", "1.0")
+    t0 = float(flight.t[0])
+
+    def reset(blimp: str) -> EstimatorClient:
+        c = svc.client(blimp)
+        c.reset(flight.state[0], STD, t=t0)
+        return c
+
+    def idle_but(busy: list[EstimatorClient], start: int) -> None:  # the others fall idle for over 1 s
+        for k in range(start, start + 4):
+            time.sleep(0.3)
+            for c in busy:
+                c.step(flight.control[k], [], float(flight.t[k + 1]))
+
     try:
-        t0 = float(flight.t[0])
-        sessions = {b: svc.client(b) for b in ("b.idle", "a.one", "a.two", "b.busy")}
-        for c in sessions.values():
-            c.reset(flight.state[0], STD, t=t0)
+        sessions = {b: reset(b) for b in ("b.idle", "a.one", "a.two", "b.busy")}
         quota = r"tenant 'a' holds its quota of 2 sessions \(--session-quota\)"
         with pytest.raises(ServiceError, match=quota):
-            svc.client("a.three").reset(flight.state[0], STD, t=t0)
-        for k in range(4):  # a.two and b.busy stay active, a.one and b.idle fall idle
-            time.sleep(0.2)
-            for b in ("a.two", "b.busy"):
-                sessions[b].step(flight.control[k], [], float(flight.t[k + 1]))
-        svc.client("a.three").reset(flight.state[0], STD, t=t0)  # closes a.one, not b.idle
-        svc.client("shared").reset(flight.state[0], STD, t=t0)  # the tenant "": the fifth session
-        svc.client("c.new").reset(flight.state[0], STD, t=t0)  # at the cap: the idlest, b.idle
+            reset("a.three")
+        idle_but([sessions["a.two"], sessions["b.busy"]], 0)
+        reset("a.three")  # closes a.one, a's least recently used, not b.idle (idle longer)
+        reset("shared")  # the tenant "": the fifth session
+        reset("c.new")  # at the cap, tenant c has none: the idlest of all, b.idle
         view = svc.sessions()
         names = sorted(s["blimp"] for s in view["sessions"])
         assert names == ["a.three", "a.two", "b.busy", "c.new", "shared"]
         assert view["evicted"] == 2 and view["session_quota"] == 2
         with pytest.raises(ServiceError, match="no session"):
             sessions["a.one"].status()
-        for bad in ("a.b.c", ".x", "x.", "a" * 65 + ".x"):
+        idle_but([sessions["a.two"], sessions["b.busy"]], 4)  # a.three, shared, c.new idle, in that order
+        reset("c.second")  # at the cap, c under its quota: its own idle c.new, not a.three
+        names = sorted(s["blimp"] for s in svc.sessions()["sessions"])
+        assert names == ["a.three", "a.two", "b.busy", "c.second", "shared"]
+        for bad in ("a.b.c", ".x", "x.", "a" * 65 + ".x", "abc\n"):
             with pytest.raises(ValueError, match=rf"blimp={re.escape(repr(bad))}: invalid blimp id"):
                 svc.client(bad)
     finally:
@@ -571,6 +583,12 @@ def test_each_limit_is_accepted_at_its_edge_and_refused_past_it_by_name(name: st
         assert str(err.value).count("=") == 1  # only the bad field is named
 
 
+def test_a_tenants_catch_up_share_is_a_part_of_the_services() -> None:
+    assert Limits(catch_up_share=0.5, tenant_catch_up_share=0.5).tenant_catch_up_share == 0.5
+    with pytest.raises(ValueError, match=r"out of range: tenant_catch_up_share=0.6$"):
+        Limits(catch_up_share=0.5, tenant_catch_up_share=0.6)
+
+
 def test_the_gate_probability_stays_below_one() -> None:
     assert Limits(gate_p=0.999).gate_p == 0.999
     with pytest.raises(ValueError, match="gate_p=1"):
@@ -590,7 +608,7 @@ def test_every_limit_has_one_option_whose_default_is_the_limits_default() -> Non
         "horizon_s": 30.0, "max_gap_steps": 7, "queue_cap": 8, "queue_bytes": 9, "total_queue_bytes": 10,
         "max_controls": 11, "gate_p": 0.25, "session_ttl_s": 12.0, "max_sessions": 13,
         "evict_idle_s": 14.0, "session_quota": 19, "fence_after_s": 15.0, "catch_up_share": 16.0,
-        "catch_up_burst_s": 17.0, "catch_up_slice_s": 18.0, "tenant_catch_up_share": 20.0,
+        "catch_up_burst_s": 17.0, "catch_up_slice_s": 18.0, "tenant_catch_up_share": 8.0,
     }  # fmt: skip
     args = [str(a) for flag, name, _, _ in OPTIONS for a in (flag, given[name])]
     got = limits_from(p.parse_args(args))
@@ -705,19 +723,23 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
     system = System("fast", ("p",), ("u",), (Sensor("pos", ("p",)),), 0.001)
     filt = EKF(LinearGaussianPrediction(np.eye(1), np.ones((1, 1)), np.full(1, 1e-4)),
                LinearGaussianObservation(np.eye(1), np.full(1, 1e-2)))  # fmt: skip
-    budget = CatchUpBudget(0.5, 0.5, 2.0, clock=lambda: 0.0)  # no refill during the test
+    budget = CatchUpBudget(0.5, 0.25, 2.0, clock=lambda: 0.0)  # no refill during the test
     pool = WorkerPool(1, step_together)
-    s = Session("A", "ekf", "gp", SessionSettings(system, Limits(), catch_up=budget), lambda *_: filt,
+    s = Session("team.A", "ekf", "gp", SessionSettings(system, Limits(), catch_up=budget), lambda *_: filt,
                 lambda *_: None, pool=pool)  # fmt: skip
     try:
-        assert budget.take("", 1.5) is None  # a catch-up reserved 1.5 s, then spent 0.25
+        assert budget.take("team", 1.5) is None  # a catch-up reserved 1.5 s, then spent 0.25
         cont = _CatchUp(None, None, StepInfo(), n=100, known=True, reserved=1.5, done=40, spent=0.25)
         s._dropped(("camera", b"", None, cont))
-        assert budget.available("") == pytest.approx(1.75)  # 0.5 left + 1.25 unspent
+        assert budget.available("team") == pytest.approx(1.75)  # 0.5 left + 1.25 unspent, to its tenant
         s._dropped(("camera", b"", None, cont))  # settled once only
-        assert budget.available("") == pytest.approx(1.75)
+        assert budget.available("team") == pytest.approx(1.75) and budget.service.available() == 3.75
+        s._step_s = 0.01  # a reservation of the session draws on its tenant's bucket
+        assert s._reserve_catch_up(10, 0.01) == pytest.approx(0.1)
+        assert budget.available("team") == pytest.approx(1.65) and budget.available("other") == 2.0
+        budget.settle("team", 0.1, 0.0)
         # a catch-up whose prediction fails is rejected and refunds what it did not spend too
-        assert budget.take("", 1.5) is None
+        assert budget.take("team", 1.5) is None
 
         class Failing(EKF):
             def predict(self, *args, **kwargs):
@@ -731,7 +753,7 @@ def test_a_catch_up_dropped_at_the_queue_cap_refunds_what_it_reserved() -> None:
                         reserved=1.5, done=40, spent=0.25)  # fmt: skip
         with pytest.raises(RuntimeError, match="prediction failed"):
             s._camera(frame, cont)
-        assert budget.available("") == pytest.approx(1.5, abs=0.01) and cont.reserved == 0.0
+        assert budget.available("team") == pytest.approx(1.5, abs=0.01) and cont.reserved == 0.0
     finally:
         pool.stop()
 
@@ -740,30 +762,35 @@ def test_one_tenants_catch_ups_use_only_its_share_of_the_services_budget() -> No
     """A reservation must fit the tenant's own bucket and the service's (twice the burst at
     half the rate): tenant "a" spends its burst, is refused naming
     ``--tenant-catch-up-share`` and leaves "b" a whole burst; the service's refusal names
-    ``--catch-up-share`` and takes nothing from the tenant."""
+    ``--catch-up-share`` and takes nothing from the tenant; one catch-up over the burst is
+    refused naming ``--catch-up-burst``, whatever is available."""
     clock = Clock()
     b = CatchUpBudget(rate=0.5, tenant_rate=0.25, burst=2.0, clock=clock, max_tenants=2)
-    assert b.service.burst == 4.0 and b.available("a") == 2.0
-    assert b.take("a", 2.0) is None and b.take("a", 0.1) == ("--tenant-catch-up-share", 0.25, 0.0)
+    assert b.service.burst == 4.0 and b.available("a") == 2.0 and b.held == 0  # reading creates none
+    assert b.take("a", 2.0 + 1e-9) == "one catch-up may cost at most 2 s (--catch-up-burst)"
+    assert b.take("a", 2.0) is None
+    assert b.take("a", 0.1) == "tenant 'a' may use 0 s now (0.25 s per second, --tenant-catch-up-share)"
     assert b.available("b") == 2.0 and b.take("b", 1.5) is None  # what a left: a whole burst
-    assert b.take("c", 0.6) == ("--catch-up-share", 0.5, pytest.approx(0.5))
+    assert b.take("c", 0.6) == "the service allows 0.5 s now (0.5 s per second, --catch-up-share)"
     assert b.available("c") == pytest.approx(0.5)  # nothing taken from c's bucket ...
     b.settle("b", 1.5, 0.0)  # (b's reservation cost nothing: the service has 2 s again)
     assert b.available("c") == pytest.approx(2.0)  # ... its own bucket is full
     assert b.take("b", 1.5) is None
     clock.now += 4.0  # the service refills 2 s; a 1 s, b 1 s
-    assert b.take("a", 1.5) == ("--tenant-catch-up-share", 0.25, pytest.approx(1.0))
+    assert b.take("a", 1.5) == "tenant 'a' may use 1 s now (0.25 s per second, --tenant-catch-up-share)"
     assert b.take("a", 1.0) is None and b.available("b") == pytest.approx(1.5)
     b.settle("a", 1.0, 0.25)  # a's unspent work comes back to both
     assert b.available("a") == pytest.approx(0.75) and b.service.available() == pytest.approx(2.25)
     assert b.held == 3  # a, b, c: the third came while none of two was full
     clock.now += 100.0  # every bucket full again: a fourth tenant forgets the full ones
     assert b.take("d", 0.0) is None and b.available("d") == 2.0 and b.held == 1
-    assert b.take("d", 1.0) is None and b.available("e") == 2.0 and b.held == 2  # d is refilling
+    assert b.take("d", 1.0) is None and b.take("e", 0.0) is None and b.held == 2  # d is refilling
     clock.now += 100.0
-    assert b.available("f") == 2.0 and b.held == 1  # at two again, the full ones go
+    assert b.take("f", 0.0) is None and b.held == 1  # at two again, the full ones go
     assert b.take("a", 2.0) is None  # a's bucket starts full like a new one's
-    whole = CatchUpBudget(rate=0.5, tenant_rate=None, burst=2.0, clock=clock)  # no tenant parts
-    assert whole.take("a", 2.0) is None and whole.take("b", 0.1) == ("--catch-up-share", 0.5, 0.0)
-    whole.settle("a", 2.0, 1.0)
-    assert whole.available("b") == whole.service.available() == pytest.approx(1.0)
+    for off in (None, 0.0):  # no tenant parts: the service's bucket alone, as before tenants
+        whole = CatchUpBudget(rate=0.5, tenant_rate=off, burst=2.0, clock=clock)
+        assert whole.service.burst == 2.0 and whole.take("a", 2.0) is None
+        assert whole.take("b", 0.1) == "the service allows 0 s now (0.5 s per second, --catch-up-share)"
+        whole.settle("a", 2.0, 1.0)
+        assert whole.available("b") == whole.service.available() == pytest.approx(1.0) and whole.held == 0

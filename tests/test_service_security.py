@@ -24,6 +24,7 @@ from estimator_service.service.client import (
     free_port,
     list_sessions,
     open_session,
+    services,
     spawn_service,
 )
 from estimator_service.service.protocol import PROTOCOL_VERSION, encode
@@ -69,6 +70,32 @@ def _secure_service(models: Path, folder: Path, *options: str):
             s.close()
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=20)
+
+
+def _only_services_publish(owner: EstimatorClient, session, others: list, t: float) -> None:
+    """``owner``'s subscriber on its blimp's keys receives the belief the service publishes
+    for its step, and nothing that ``others`` (logged-in users' sessions) put on those keys."""
+    got: list[bytes] = []
+
+    def keep(sample) -> None:
+        got.append(sample.payload.to_bytes())
+
+    subs = [
+        session.declare_subscriber(keys.blimp_key(owner.blimp, kind), keep) for kind in ("belief", "error")
+    ]
+    time.sleep(0.3)
+    owner.step(np.zeros(3), [], t)
+    deadline = time.monotonic() + 3.0
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert got, "the service's belief did not arrive"
+    for other in others:
+        for kind in ("belief", "error"):
+            other.put(keys.blimp_key(owner.blimp, kind), b"forged")
+    time.sleep(0.5)
+    assert b"forged" not in got
+    for sub in subs:
+        sub.undeclare()
 
 
 def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -> None:
@@ -137,6 +164,8 @@ def test_a_tenant_drives_only_its_own_blimps_and_cannot_lock_others_out(models: 
         blimps = sorted(s["blimp"] for s in view["sessions"])
         assert blimps == ["alice.0", "alice.1", "alice.2", "bob.0", "bob.1", "bob.2", "guarded"]
         assert all(s["steps"] == 0 for s in view["sessions"] if s["blimp"] != "alice.0")
+        bob_client = EstimatorClient(bob, "bob.0", timeout=1.5)
+        _only_services_publish(bob_client, bob, [alice, pilot], 0.25)
 
 
 def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path) -> None:
@@ -192,6 +221,7 @@ def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path)
         token = viewer.liveliness().declare_token(keys.liveliness_key(fake))
         time.sleep(1.0)
         assert all(len(v["fleet"]) == 2 for v in list_sessions(sessions["pilot"]))
+        assert fake not in services(sessions["pilot"])  # the router let its token through to no one
         token.undeclare()
         answer.undeclare()
         stranger = open_session(endpoint)  # no credentials: the router does not let it in
@@ -199,6 +229,8 @@ def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path)
         with pytest.raises(NoReply):
             EstimatorClient(stranger, "guarded", timeout=1.5).status()
         assert pilot.step(np.zeros(3), [], 0.5)["t"] == 0.5
+        owner = EstimatorClient(sessions["alice"], "alice.one", timeout=1.5)
+        _only_services_publish(owner, sessions["alice"], [sessions["viewer"], sessions["bob"]], 0.25)
     finally:
         for s in opened:
             s.close()

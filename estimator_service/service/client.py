@@ -134,7 +134,7 @@ class EstimatorClient:
         counts it in ``resyncs`` and reports it through ``on_resync(blimp, last_belief)`` and
         a warning on the ``estimator_service.client`` logger. ``blimp``: ``[<tenant>.]<name>``
         (:data:`~estimator_service.service.keys.BLIMP_ID`); another id raises ValueError."""
-        if not isinstance(blimp, str) or not keys.BLIMP_ID.match(blimp):
+        if not isinstance(blimp, str) or not keys.BLIMP_ID.fullmatch(blimp):
             raise ValueError(f"blimp={blimp!r}: {keys.BLIMP_ID_RULE}")
         self.session, self.blimp = session, blimp
         self.timeout = attempt_timeout if failover else timeout

@@ -35,13 +35,13 @@ __all__ = [
 
 PREFIX = "gpbf"
 LIVELINESS_PREFIX = f"{PREFIX}/@service"
-_NAME = r"[A-Za-z0-9_\-]{1,64}"
-#: a service id: one name
-SERVICE_ID = re.compile(rf"^{_NAME}$")
-#: a blimp id: a name, or ``<tenant>.<name>``
-BLIMP_ID = re.compile(rf"^(?:{_NAME}\.)?{_NAME}$")
-BLIMP_ID_RULE = "invalid blimp id: [<tenant>.]<name>, each 1-64 characters of A-Z a-z 0-9 _ -"
 TENANT_SEP = "."
+_NAME = r"[A-Za-z0-9_\-]{1,64}"
+#: a service id: one name (use ``fullmatch``: ``$`` would let a trailing newline through)
+SERVICE_ID = re.compile(_NAME)
+#: a blimp id: a name, or ``<tenant>.<name>`` (``fullmatch``)
+BLIMP_ID = re.compile(rf"(?:{_NAME}{re.escape(TENANT_SEP)})?{_NAME}")
+BLIMP_ID_RULE = f"invalid blimp id: [<tenant>{TENANT_SEP}]<name>, each 1-64 characters of A-Z a-z 0-9 _ -"
 INPUTS = ("control", "camera")
 OUTPUTS = ("belief", "error")
 QUERIES = ("step", "reset", "status", "close")
@@ -100,4 +100,4 @@ def parse_key(key: str) -> tuple[str | None, str, int | None]:
     if kind == "camera":
         last = parts[3] if len(parts) == 4 else ""
         camera = int(last) if last.isascii() and last.isdigit() and len(last) <= 6 else -1
-    return (blimp if BLIMP_ID.match(blimp) else None), kind, camera
+    return (blimp if BLIMP_ID.fullmatch(blimp) else None), kind, camera

@@ -74,8 +74,9 @@ class Limits:
         Sessions per service; at the cap, expired sessions are closed first, otherwise a
         new blimp is refused with an error naming the cap.
     evict_idle_s
-        At the session cap, a new blimp's reset closes the session idle the longest if it
-        has been idle this long (counted as ``evicted``); otherwise the reset is refused.
+        At the session cap or its tenant's quota, a new blimp's reset closes a session idle
+        this long (counted as ``evicted``): its own tenant's least recently used first, at
+        the cap then the one idle the longest; otherwise the reset is refused.
     session_quota
         Sessions per tenant (:func:`~estimator_service.service.keys.tenant`: a blimp id's part
         before ``.``; ids without one share the tenant ``""``). A tenant's new blimp at its
@@ -146,7 +147,8 @@ class Limits:
             "fence_after_s": self.fence_after_s > 0,
             "catch_up_share": self.catch_up_share > 0,
             "catch_up_burst_s": self.catch_up_burst_s > 0, "catch_up_slice_s": self.catch_up_slice_s > 0,
-            "tenant_catch_up_share": self.tenant_catch_up_share >= 0,
+            "tenant_catch_up_share": self.tenant_catch_up_share >= 0
+            and not self.tenant_catch_up_share > self.catch_up_share,  # a part of it
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
@@ -174,7 +176,7 @@ OPTIONS = (
      "seconds without input after which a session is closed (0: never)"),
     ("--max-sessions", "max_sessions", checked_int(1, 1_000_000), "sessions per service"),
     ("--evict-idle", "evict_idle_s", checked_float(0.0, 1e9),
-     "seconds idle after which a session may be closed for a new blimp at the session cap"),
+     "seconds idle after which a session may be closed for a new blimp at the cap or its tenant's quota"),
     ("--session-quota", "session_quota", checked_int(0, 1_000_000),
      "sessions per tenant (a blimp id's part before '.'; ids without one share one tenant; 0: none)"),
     ("--fence-after", "fence_after_s", checked_float(0.0, 1e6, low_open=True),
@@ -246,19 +248,21 @@ class CatchUpBudget:
     second, at most ``burst`` at once: the most one catch-up may cost) and the service's
     (``rate``, at most ``burst x rate / tenant_rate`` at once, never less than ``burst``).
     One tenant's frames therefore use at most ``tenant_rate`` per second over time and
-    ``burst`` at once, and the others always find the rest: with ``rate >= 2 tenant_rate``, at
-    least ``burst`` minus their own use. A tenant's bucket is forgotten once full again (then
-    it is a new one's equal), when more than ``max_tenants`` are held."""
+    ``burst`` at once; with ``tenant_rate`` at most ``rate`` over the number of tenants, none
+    can be starved by the others. A tenant's bucket is forgotten once full again (then it is
+    a new one's equal), when more than ``max_tenants`` are held."""
 
     def __init__(
         self, rate: float, tenant_rate: float | None, burst: float, clock=time.monotonic,
         max_tenants: int = 4096,
     ) -> None:  # fmt: skip
-        """``tenant_rate`` None: no tenant has a part of its own (the service's bucket alone)."""
-        self.service = WorkBudget(rate, burst * max(1.0, rate / (tenant_rate or rate)), clock)
-        self.tenant_rate, self.burst, self.max_tenants, self._clock = tenant_rate, burst, max_tenants, clock
+        """``tenant_rate`` None or 0: no tenant has a part of its own (the service's bucket
+        alone)."""
+        self.tenant_rate = tenant_rate or None
+        self.service = WorkBudget(rate, burst * max(1.0, rate / (self.tenant_rate or rate)), clock)
+        self.burst, self.max_tenants, self._clock = burst, max_tenants, clock
         self._tenants: dict[str, WorkBudget] = {}
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # held over each whole reservation and settlement
 
     @property
     def held(self) -> int:
@@ -266,40 +270,49 @@ class CatchUpBudget:
         with self._lock:
             return len(self._tenants)
 
-    def _own(self, tenant: str) -> WorkBudget | None:
+    def _own(self, tenant: str, create: bool = True) -> WorkBudget | None:
+        """``tenant``'s bucket (under the lock); None without tenant parts, or not held and
+        not ``create``."""
         if self.tenant_rate is None:
             return None
-        with self._lock:
-            own = self._tenants.get(tenant)
-            if own is None:
-                if len(self._tenants) >= self.max_tenants:
-                    self._tenants = {t: b for t, b in self._tenants.items() if b.available() < b.burst}
-                own = self._tenants[tenant] = WorkBudget(self.tenant_rate, self.burst, self._clock)
-            return own
+        own = self._tenants.get(tenant)
+        if own is None and create:
+            if len(self._tenants) >= self.max_tenants:
+                self._tenants = {t: b for t, b in self._tenants.items() if b.available() < b.burst}
+            own = self._tenants[tenant] = WorkBudget(self.tenant_rate, self.burst, self._clock)
+        return own
 
-    def take(self, tenant: str, estimate_s: float) -> tuple[str, float, float] | None:
-        """Reserve ``estimate_s`` for ``tenant``: None when reserved, else ``(option, rate,
-        available)`` of the budget that refused it (nothing reserved)."""
-        own = self._own(tenant)
-        if own is not None and own.take(estimate_s) is None:
-            return "--tenant-catch-up-share", own.rate, own.available()
-        if self.service.take(estimate_s) is None:
-            if own is not None:
-                own.settle(estimate_s, 0.0)
-            return "--catch-up-share", self.service.rate, self.service.available()
-        return None
+    def take(self, tenant: str, estimate_s: float) -> str | None:
+        """Reserve ``estimate_s`` for ``tenant``: None when reserved, else why not, naming
+        the option that refused it (nothing reserved)."""
+        if estimate_s > self.burst:
+            return f"one catch-up may cost at most {self.burst:g} s (--catch-up-burst)"
+        with self._lock:
+            own = self._own(tenant)
+            if own is not None and own.take(estimate_s) is None:
+                return (f"tenant {tenant!r} may use {own.available():.3g} s now ({own.rate:g} s per "
+                        f"second, --tenant-catch-up-share)")  # fmt: skip
+            if self.service.take(estimate_s) is None:
+                if own is not None:
+                    own.settle(estimate_s, 0.0)
+                return (f"the service allows {self.service.available():.3g} s now ({self.service.rate:g} s "
+                        f"per second, --catch-up-share)")  # fmt: skip
+            return None
 
     def available(self, tenant: str) -> float:
         """What ``tenant`` may reserve now: the smaller of its own and the service's budget."""
-        own = self._own(tenant)
-        return min(own.available() if own is not None else math.inf, self.service.available())
+        with self._lock:
+            own = self._own(tenant, create=False)
+            mine = own.available() if own is not None else self.burst
+            return min(mine, self.service.available())
 
     def settle(self, tenant: str, estimate_s: float, actual_s: float) -> None:
         """The work ``tenant`` reserved at ``estimate_s`` cost ``actual_s``."""
-        own = self._own(tenant)
-        if own is not None:
-            own.settle(estimate_s, actual_s)
-        self.service.settle(estimate_s, actual_s)
+        with self._lock:
+            own = self._own(tenant)
+            if own is not None:
+                own.settle(estimate_s, actual_s)
+            self.service.settle(estimate_s, actual_s)
 
 
 def add_limit_options(p: argparse.ArgumentParser) -> None:

@@ -68,7 +68,7 @@ class Membership:
         with self._lock:
             if service in self.live or service in self._pending:
                 return
-            if not keys.SERVICE_ID.match(service) or len(self._pending) >= MAX_PENDING:
+            if not keys.SERVICE_ID.fullmatch(service) or len(self._pending) >= MAX_PENDING:
                 self.refused += 1
                 return
             self._pending[service] = HELLO_TRIES

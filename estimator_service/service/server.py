@@ -126,7 +126,7 @@ class EstimatorService:
         self._live = frozenset({config.service_id})  # the fleet as this service sees it (swapped whole)
         self._members = Membership(self.zenoh, config.service_id, self._lock, self._fleet_changed)
         self.fenced = 0  # sessions forgotten on waking from a freeze
-        self.evicted = 0  # idle sessions closed at the cap for a new blimp
+        self.evicted = 0  # idle sessions closed at the cap or a tenant's quota for a new blimp
         self._tick = time.monotonic()  # the freeze watchdog's last tick
         # every field a callback reads exists before the first callback can run
         self._decls = [
@@ -228,6 +228,8 @@ class EstimatorService:
         lim, tenant = self.config.limits, keys.tenant(blimp)
         wait = f"none idle for {lim.evict_idle_s:g} s (--evict-idle): close sessions ('close') or wait"
         at_quota = lim.session_quota and self._tenant_count(tenant) >= lim.session_quota
+        if at_quota and self._expire(time.monotonic()):  # timed-out sessions go first
+            at_quota = self._tenant_count(tenant) >= lim.session_quota
         if at_quota and not self._evict_idlest(tenant):
             quota = f"quota of {lim.session_quota} sessions (--session-quota)"
             return f"tenant {tenant!r} holds its {quota} and {wait}"

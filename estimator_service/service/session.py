@@ -426,11 +426,9 @@ class Session:
         refused = budget.take(keys.tenant(self.blimp), estimate)
         if refused is not None:
             self.refused_catch_up += 1
-            option, rate, available = refused
             raise ProtocolError(
                 f"field 't': catching up {steps} steps would take about {estimate:.3g} s of filtering; "
-                f"the service allows {available:.3g} s now ({rate:g} s per second, "
-                f"{option}); send frames as they come, or a reset"
+                f"{refused}; send frames as they come, or a reset"
             )
         return estimate
 
