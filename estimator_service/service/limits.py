@@ -152,9 +152,11 @@ class Limits:
         }  # fmt: skip
         bad = [k for k, ok in checks.items() if not ok or not math.isfinite(getattr(self, k))]
         if bad:
-            raise ValueError(
-                f"service limits out of range: {', '.join(f'{k}={getattr(self, k)}' for k in bad)}"
-            )
+            over = self.tenant_catch_up_share > self.catch_up_share  # a part larger than the whole
+            part = f" (more than catch_up_share, {self.catch_up_share})" if over else ""
+            why = {"tenant_catch_up_share": part}
+            listed = ", ".join(f"{k}={getattr(self, k)}{why.get(k, '')}" for k in bad)
+            raise ValueError(f"service limits out of range: {listed}")
 
 
 #: ``gpbf serve`` option, :class:`Limits` field, parser type and help, one row per limit
