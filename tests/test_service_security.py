@@ -113,6 +113,8 @@ def test_only_the_named_pilot_may_reset_and_step(models: Path, tmp_path: Path) -
         with pytest.raises(NoReply):
             viewer.step(np.zeros(3), [], 0.5)
         s, anonymous = _client(endpoint, None, "guarded")
+        assert not list(s.info.peers_zid()) and not list(s.info.routers_zid())  # not let in at all
+        assert list(opened[0].info.peers_zid())  # (the pilot is connected to the service)
         opened.append(s)
         with pytest.raises(NoReply):
             anonymous.reset(np.zeros(12), STD)
@@ -226,6 +228,8 @@ def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path)
         answer.undeclare()
         stranger = open_session(endpoint)  # no credentials: the router does not let it in
         opened.append(stranger)
+        assert not list(stranger.info.routers_zid()) and not list(stranger.info.peers_zid())
+        assert list(sessions["viewer"].info.routers_zid())  # (a logged-in client is connected)
         with pytest.raises(NoReply):
             EstimatorClient(stranger, "guarded", timeout=1.5).status()
         assert pilot.step(np.zeros(3), [], 0.5)["t"] == 0.5
