@@ -233,6 +233,12 @@ def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path)
         with pytest.raises(NoReply):
             EstimatorClient(stranger, "guarded", timeout=1.5).status()
         assert pilot.step(np.zeros(3), [], 0.5)["t"] == 0.5
+        pilot.publish_control(np.zeros(3), 0.5)  # streamed inputs pass the router too: a camera
+        pilot.publish_camera(0, [320.0, 240.0, 40.0, 20.0, 0.1], 0.75)  # frame steps the blimp
+        deadline = time.monotonic() + 3.0
+        while pilot.status()["steps"] < 3 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert pilot.status()["steps"] == 3 and pilot.status()["t"] == 0.75
         owner = EstimatorClient(sessions["alice"], "alice.one", timeout=1.5)
         _only_services_publish(owner, sessions["alice"], [sessions["viewer"], sessions["bob"]], 0.25)
     finally:
