@@ -246,3 +246,61 @@ def test_the_secure_example_holds_through_a_router(models: Path, tmp_path: Path)
             s.close()
         for p in started:
             p.kill()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command for make-certs.sh")
+def test_the_secure_example_holds_across_two_routers_joined_by_mutual_tls(
+    models: Path, tmp_path: Path
+) -> None:
+    """Two routers, each running ``service.json5`` from its own folder with its certificate
+    (``make-certs.sh``), joined over ``tls/``, a service behind each: the two services form
+    one fleet (with user and password alone they never did: login is one way) and the pilot,
+    connected to one router, drives blimps owned by either."""
+    secure = ROOT / "docs" / "examples" / "secure"
+    subprocess.run(["sh", str(secure / "make-certs.sh"), str(tmp_path / "certs"), "router-a", "router-b"],
+                   check=True, timeout=60)  # fmt: skip
+    tls, tcp = {n: free_port() for n in "ab"}, {n: free_port() for n in "ab"}
+    started, opened = [], []
+    try:
+        for n in "ab":
+            folder = tmp_path / n
+            shutil.copytree(secure, folder)
+            for f in ("ca.pem", "node.pem", "node.key"):
+                shutil.copy(tmp_path / "certs" / f"router-{n}" / f, folder / f)
+            join = ["--connect", f"tls/127.0.0.1:{tls['a']}"] if n == "b" else []
+            router = subprocess.Popen(
+                [sys.executable, "-m", "estimator_service", "router", "--listen", f"tls/127.0.0.1:{tls[n]}",
+                 "--listen", f"tcp/127.0.0.1:{tcp[n]}", *join, "--zenoh-config", "service.json5"],
+                cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            )  # fmt: skip
+            started.append(router)
+            assert "mode router" in router.stdout.readline()
+            options = (
+                "--model",
+                "param",
+                "--zenoh-config",
+                "service-client.json5",
+                "--connect",
+                f"tcp/127.0.0.1:{tcp[n]}",
+            )
+            started.append(spawn_service(models, free_port(), *options, cwd=folder)[0])
+        pilot = open_session([f"tcp/127.0.0.1:{tcp['a']}"], config_file=tmp_path / "a" / "pilot.json5")
+        opened.append(pilot)
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline:
+            views = list_sessions(pilot)
+            if len(views) == 2 and all(len(v["fleet"]) == 2 for v in views):
+                break
+            time.sleep(0.5)
+        assert len(views) == 2 and all(len(v["fleet"]) == 2 for v in views), views
+        owners = set()
+        for k in range(8):
+            c = EstimatorClient(pilot, f"blimp{k}", timeout=3.0)
+            owners.add(c.reset(np.zeros(12), STD)["service"])
+            assert c.step(np.zeros(3), [], 0.25)["t"] == 0.25
+        assert owners == {v["service"] for v in views}  # blimps on both routers' services
+    finally:
+        for s in opened:
+            s.close()
+        for p in started:
+            p.kill()
