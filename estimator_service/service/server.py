@@ -104,11 +104,8 @@ class EstimatorService:
         self._version = model_version(config.model_dir)  # refuses an incomplete or mixed folder
         self.system = read_system(config.model_dir)
         lim = config.limits
-        budget = CatchUpBudget(
-            lim.catch_up_share,
-            lim.tenant_catch_up_share or None,
-            lim.catch_up_burst_s,
-            max_tenants=lim.max_sessions,
+        budget = CatchUpBudget(  # a tenant share of 0: none
+            lim.catch_up_share, lim.tenant_catch_up_share, lim.catch_up_burst_s, max_tenants=lim.max_sessions
         )
         queued = ByteMeter(config.limits.total_queue_bytes)
         self._settings = SessionSettings(self.system, config.limits, budget, queued)
