@@ -249,8 +249,7 @@ class UserPrediction(_FittedFunctions):
         """The noise shape ``g(x (M, n), u (M, k))`` ``(M, n)``, None without one."""
         if self.noise is None:
             return None
-        ref, values = self.fitted.spec.noise or "", self.fitted.values
-        return _noise_shape(self.noise, ref, x, u, values, self.system.dt)
+        return _noise_shape(self.noise, str(self.fitted.spec.noise), x, u, self.fitted.values, self.system.dt)
 
     def change(self, x: FloatArray, u: FloatArray) -> FloatArray:
         """Mean change ``(M, n)``, angles wrapped."""

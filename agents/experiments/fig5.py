@@ -35,26 +35,30 @@ def fig5(folder: Path, test: Flight, path: Path) -> dict[str, float]:
     """GP-UKF standard deviations of :data:`FIG5_STATES` over ``test`` with the ``hetgp`` and
     ``gp`` models of ``folder``, the tail power shaded (the figure at ``path``); figures
     ``"<model> <state>: ..."`` for the report and its checks. Empty without an active step
-    or an inactive one."""
+    or an inactive one among those tracked (the flight's first episode)."""
     import matplotlib.pyplot as plt
 
     from estimator_service.plots import save_figure
 
     tail = np.abs(test.control[:-1, TAIL])
-    active = tail > TAIL_ACTIVE
-    if active.all() or not active.any():
+    filters = {kind: build_filter("ukf", kind, folder) for kind in MODELS}
+    runs = {kind: (f, track_flight(f, test)) for kind, f in filters.items()}
+    tracked = len(runs[MODELS[0]][1].mean)  # the steps of the flight's first episode
+    tail = tail[:tracked]
+    on = tail > TAIL_ACTIVE
+    if on.all() or not on.any():
         return {}
+    n = test.state.shape[1]
+    inp, change = prediction_data([test.select(np.arange(tracked + 1))])  # the transitions tracked
+    t = np.arange(tracked) * test.dt
     res: dict[str, float] = {}
     fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     for ax, kind in zip(axes, MODELS, strict=True):
-        ukf = build_filter("ukf", kind, folder)
-        r = track_flight(ukf, test)
-        t, on = np.arange(len(r.mean)) * test.dt, active[: len(r.mean)]
-        for shade in np.unique(np.round(tail[: len(t)], 1)):  # intensity: the tail's power
-            ax.fill_between(t, 0, 1, where=np.round(tail[: len(t)], 1) == shade, color="0.5",
+        ukf, r = runs[kind]
+        for shade in np.unique(np.round(tail, 1)):  # intensity: the tail's power
+            ax.fill_between(t, 0, 1, where=np.round(tail, 1) == shade, color="0.5",
                             alpha=0.5 * float(shade), lw=0, transform=ax.get_xaxis_transform())  # fmt: skip
-        inp, change = prediction_data([test.select(np.arange(len(t) + 1))])  # the transitions tracked
-        one = ukf.prediction.predict(inp[:, :12], inp[:, 12:])
+        one = ukf.prediction.predict(inp[:, :n], inp[:, n:])
         for name, i in FIG5_STATES.items():
             sd = np.sqrt(r.cov[:, i, i])
             ax.plot(t, sd / sd.mean(), lw=0.8, label=name)
@@ -73,8 +77,9 @@ def fig5(folder: Path, test: Flight, path: Path) -> dict[str, float]:
 def _one_step(kind: str, name: str, err: np.ndarray, var: np.ndarray, on: np.ndarray) -> dict[str, float]:
     """The prediction model's one-step RMS error and RMS predicted sd, tail active over the
     rest: how much the tail motor changes the motion's noise, and what the model learned of it."""
-    rms = lambda a: float(np.sqrt(np.mean(a)))  # noqa: E731
+    root_mean = lambda sq: float(np.sqrt(np.mean(sq)))  # noqa: E731  (of squares, or of variances)
+    sq, key = err * err, f"{kind} {name}: one-step"
     return {
-        f"{kind} {name}: one-step error, tail active over the rest": rms(err[on] ** 2) / rms(err[~on] ** 2),
-        f"{kind} {name}: one-step predicted sd, tail active over the rest": rms(var[on]) / rms(var[~on]),
+        f"{key} error, tail active over the rest": root_mean(sq[on]) / root_mean(sq[~on]),
+        f"{key} predicted sd, tail active over the rest": root_mean(var[on]) / root_mean(var[~on]),
     }

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.experiments.fig5 import FIG5_STATES
 from agents.experiments.measures import aggregate_gain, improvement
 from agents.experiments.provenance import provenance_line
 from agents.experiments.report_notes import write_keeping_notes
@@ -392,7 +393,7 @@ def _fig5_checks(f5: dict) -> list[tuple[str, str, bool]]:
     and rises more over the rest of the flight; each a strict comparison of the geometric
     mean over those states of the ratios (the variation: the mean coefficient of variation)."""
     on, off, cv = "sd while the tail is active", "sd otherwise", "sd variation while the tail is active"
-    states = sorted({k.split(": ")[0].split(" ", 1)[1] for k in f5 if k.startswith("hetgp ")})
+    states = [x for x in FIG5_STATES if f"hetgp {x}: {off}" in f5]
     if not states or any(f"gp {s}: {off}" not in f5 for s in states):
         return []
 
