@@ -179,28 +179,30 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
               f"sklearn+loops {t['base'] * 1e3:9.1f} ms   speed-up {speed:6.1f}x")  # fmt: skip
         result[f"{name}_ms"] = round(t["ours"] * 1e3, 3)
         result[f"speedup_{name}"] = round(speed, 1)
-    result.update(_limits(result, ours, belief, u, z, valid, reps, particles, args.smoke or args.quick))
+    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    result.update(_limits(result, ours, belief, u, z, valid, reps, particles, mode))
     print(json.dumps(result))
     return result
 
 
-def _limits(result, ours, belief, u, z, valid, reps, particles, short) -> dict[str, float]:
+def _limits(result, ours, belief, u, z, valid, reps, particles, mode) -> dict[str, float]:
     """This machine's limits (measured now) and each filter's ratio to the one that bounds
     it: the EKF streams its 22 triangular factors once (bandwidth), the exact PF does
     ``(NX + NZ) (n^2 M + 4 n M)`` flops of triangular solves and kernels (dgemm rate); and
-    the PF's cost per particle from 500 to 4,000 particles (largest over smallest)."""
+    the PF's cost per particle from 500 to 4,000 particles (largest over smallest; --quick: to
+    2,000, two timed steps each; --smoke: 100 to 400, for the tests)."""
     mm, bw = dgemm_gflops(reps), read_gbs(reps)
     ekf_limit = triangular_bytes(N_TRAIN, NX + NZ) / (bw * 1e9)
     flops = (NX + NZ) * (N_TRAIN**2 * particles + 4 * N_TRAIN * particles)
     pf_limit = flops / (mm * 1e9)
-    counts = (100, 200, 400) if short else (500, 1000, 2000, 4000)
+    counts = {"smoke": (100, 200, 400), "quick": (500, 1000, 2000)}.get(mode, (500, 1000, 2000, 4000))
     per = {}
     for m in counts:
         filt = dataclasses.replace(ours["pf_exact"], n_particles=m)
         prng = np.random.default_rng(1)
         start = filt.initial(belief, prng)
         step = lambda f=filt, b=start, prng=prng: f.step(b, u, z, valid, prng)  # noqa: E731
-        per[m] = time_steps(step, max(1, reps // 4)) / m
+        per[m] = time_steps(step, max(2 if mode == "quick" else 1, reps // 4)) / m
     ekf_ratio = result["ekf_ms"] / 1e3 / ekf_limit
     pf_ratio = result["pf_exact_ms"] / 1e3 / pf_limit
     print(f"limits: dgemm {mm:.1f} GFLOP/s, read {bw:.2f} GB/s; EKF {ekf_ratio:.2f}x its bandwidth limit "

@@ -5,6 +5,7 @@ hours on 2 cores, the sampled one about an hour: ``docs/results/mutation/``)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,9 +22,10 @@ def _project(root: Path) -> None:
         "def area(w, h):\n    return w * h\n\n\ndef label(x):\n"
         "    if x < 0:\n        raise ValueError('x must be >= 0')\n    return 'big' if x > 10 else 'small'\n"
     )
+    (root / "pkg" / "twice.py").write_text("def twice(x):\n    return 2 * x\n")
     (root / "tests" / "test_area.py").write_text(
-        "from pkg.area import area, label\n\n\ndef test_area():\n    assert area(2, 3) == 6\n"
-        "    assert label(11) == 'big'\n"
+        "from pkg.area import area, label\nfrom pkg.twice import twice\n\n\ndef test_area():\n"
+        "    assert area(2, 3) == 6\n    assert label(11) == 'big'\n    assert twice(3) == 6\n"
     )
     (root / "pyproject.toml").write_text(
         '[tool.mutmut]\nsource_paths = ["pkg"]\npytest_add_cli_args_test_selection = ["tests"]\n'
@@ -69,6 +71,27 @@ def test_mutation_run_and_summary_on_a_tiny_project(tmp_path: Path) -> None:
     assert len(by_rule) == 1 and by_rule[0]["reason"] == "equivalent: a label nobody reads"
     assert res["survivors_explained"] == 2 and res["survivors_unexplained"] == len(survivors) - 2
     assert "killed ratio" in (out / "report.md").read_text()
+    _a_run_of_one_module_keeps_the_other_from_the_earlier_run(tmp_path, cmd, res)
+
+
+def _a_run_of_one_module_keeps_the_other_from_the_earlier_run(root: Path, cmd: list, earlier: dict) -> None:
+    """A second run of ``pkg/area.py`` alone: ``--keep-from`` the first run's results takes
+    ``pkg/twice.py``'s entry from it while its source is unchanged, and not once it changed."""
+    first = root / "first.json"
+    first.write_text(json.dumps(earlier))
+    mutmut = Path(sys.executable).with_name("mutmut")
+    shutil.rmtree(root / "mutants")  # a fresh run, as `make mutate` makes
+    subprocess.run([mutmut, "run", "--max-children", "1", "pkg.area*"], cwd=root, capture_output=True,
+                   timeout=300, check=True)  # fmt: skip
+    subprocess.run([*cmd, "--keep-from", first], cwd=root, capture_output=True, timeout=120, check=True)
+    res = json.loads((root / "out" / "results.json").read_text())
+    assert res["kept"] == ["pkg/twice.py"] and res["modules"] == earlier["modules"]
+    assert res["not_run"] == 0 and res["killed_ratio"] == earlier["killed_ratio"]
+    assert sorted(s["mutant"] for s in res["survivors"]) == sorted(s["mutant"] for s in earlier["survivors"])
+    (root / "pkg" / "twice.py").write_text("def twice(x):\n    return x + x\n")
+    subprocess.run([*cmd, "--keep-from", first], cwd=root, capture_output=True, timeout=120, check=True)
+    res = json.loads((root / "out" / "results.json").read_text())
+    assert res["kept"] == [] and res["modules"]["pkg/twice.py"]["not_run"] > 0
 
 
 def _script(name: str):

@@ -354,10 +354,13 @@ def test_rl_zoo3_trains_on_the_env_with_the_committed_hyperparameters(
     assert list(tmp_path.glob(f"{algo}/*_1/*.zip")), out.stdout[-2000:]
 
 
-def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) -> None:
+def test_rl_experiment_and_agent_data_loop_smoke(
+    models: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Tiny budgets: results.json holds per task and variant the success rate and mean
     return, the pilot's figures and the targets; the report, both figures and the
-    agent-data table are written."""
+    agent-data table are written; the command the report prints for an agent gives its
+    figures."""
     import json
     import shutil
     from dataclasses import replace
@@ -379,8 +382,10 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     assert all(0 <= hover[v]["success_rate"] <= 1 and np.isfinite(hover[v]["mean_return"]) for v in hover)
     assert np.isfinite(data["pilot"]["hover"]["mean_return"]) and "hover" in data["gap_closed"]
     assert "hover_state_success_ge_0.9" in data["targets"]
+    assert data["provenance"]["wall_s"] > 0 and "Provenance: code " in (tmp_path / "report.md").read_text()
     partial = report_existing(tmp_path, replace(cfg, variants=("state", "belief-param")))
     assert partial["meta"]["not_trained"] == ["hover-belief-param-0"]
+    assert partial["provenance"] == data["provenance"]  # the training run's, not the report's
     assert set(partial["results"]["hover"]) == {"state"}
     from agents.experiments.rl import main as rl_main
 
@@ -401,6 +406,14 @@ def test_rl_experiment_and_agent_data_loop_smoke(models: str, tmp_path: Path) ->
     report = (tmp_path / "report.md").read_text()
     assert "agent-data loop" in report and "WaypointPilot" in report
     assert "agent `hover-state-0` flew" in report
+    row = next(ln for ln in report.splitlines() if ln.startswith("| hover-state-0 | `gpbf eval-agent "))
+    from agents.cli import main as gpbf_main
+
+    capsys.readouterr()
+    assert gpbf_main([*row.split("`")[1].split()[1:], "--quiet"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    saved = json.loads((agent.parent / "result.json").read_text())
+    assert again["mean_return"] == saved["mean_return"] and again["success_rate"] == saved["success_rate"]
     from agents.experiments.report_notes import NOTES_MARKER
 
     (tmp_path / "report.md").write_text(f"{report}\n{NOTES_MARKER}\n## Reading the table\n")

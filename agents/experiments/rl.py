@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.experiments.provenance import provenance
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
@@ -97,6 +99,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     ``result.json`` are not trained again: resume)."""
     from agents.experiments.rl_report import write_report
 
+    start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     models = _models(out, cfg)
     todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
@@ -110,7 +113,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     for (task, variant, _), fut in zip(todo, futures, strict=True):
         runs.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in cfg.tasks}
-    data = summarise(runs, pilot, cfg)
+    data = {**summarise(runs, pilot, cfg), "provenance": provenance(time.monotonic() - start)}
     atomic_write_text(out / "results.json", json.dumps(data, indent=2))
     write_report(out, data)
     return data
@@ -134,6 +137,9 @@ def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in runs}
     data = summarise(runs, pilot, cfg)
     data["meta"]["not_trained"] = missing
+    earlier = out / "results.json"  # the training run's record stays with its agents
+    if earlier.is_file() and "provenance" in (before := json.loads(earlier.read_text())):
+        data["provenance"] = before["provenance"]
     atomic_write_text(out / "results.json", json.dumps(data, indent=2))
     write_report(out, data)
     return data

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.experiments.provenance import provenance_line
 from agents.experiments.report_notes import write_keeping_notes
 
 __all__ = ["learning_curves", "write_report"]
@@ -70,6 +71,25 @@ def _figures(out: Path, data: dict[str, Any]) -> None:
     save_figure(fig, out / "returns.png")
 
 
+def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
+    """Per agent whose ``model.zip`` is in ``out/agents``: the command that evaluates it on
+    the report's episodes and what it gave here (a row is the mean of its seeds' lines)."""
+    agents = sorted((out / "agents").glob("*/model.zip"))
+    if not agents:
+        return []
+    lines = ["", "Each agent is published beside this report; this command reproduces its figures "
+             "(a row of the table is the mean over its seeds):", "", "| agent | command | success rate | "
+             "mean return |", "| --- | --- | ---: | ---: |"]  # fmt: skip
+    for model in agents:
+        done = model.parent / "result.json"
+        res = json.loads(done.read_text()) if done.exists() else {}
+        cmd = f"gpbf eval-agent {model.as_posix()} --episodes {meta['episodes']} --seed {meta['eval_seed']}"
+        figures = (f"{res['success_rate']:.2f} | {res['mean_return']:.1f}" if "mean_return" in res
+                   else "- | -")  # fmt: skip
+        lines.append(f"| {model.parent.name} | `{cmd}` | {figures} |")
+    return lines
+
+
 def write_report(out: Path, data: dict[str, Any]) -> None:
     """``report.md`` with the results table, the gap closed, the targets and the figures."""
     meta = data["meta"]
@@ -77,6 +97,7 @@ def write_report(out: Path, data: dict[str, Any]) -> None:
     lines = [
         "# What filtering is worth to a learned controller",
         "",
+        *([provenance_line(data["provenance"]), ""] if "provenance" in data else []),
         f"{meta['algo'].upper()} with `hyperparams/{meta['algo']}.yml`, {budget} environment steps per "
         "agent, "
         f"{meta['seeds']} seed(s), each agent evaluated on the same {meta['episodes']} held-out episodes "
@@ -101,10 +122,13 @@ def write_report(out: Path, data: dict[str, Any]) -> None:
             )
     if meta.get("not_trained"):
         lines += ["", f"Not trained: {', '.join(meta['not_trained'])}."]
-    lines += ["", "Gap closed by the GP-belief agent (ellipses -> state, on mean return): "]
-    lines += [f"- {task}: {g:.2f}" for task, g in data["gap_closed"].items()]
-    lines += ["", "Targets (issue 22): "]
-    lines += [f"- `{name}`: {'met' if ok else 'NOT met'}" for name, ok in data["targets"].items()]
+    if data["gap_closed"]:
+        lines += ["", "Gap closed by the GP-belief agent (ellipses -> state, on mean return): "]
+        lines += [f"- {task}: {g:.2f}" for task, g in data["gap_closed"].items()]
+    if data["targets"]:
+        lines += ["", "Targets (fixed before the runs): "]
+        lines += [f"- `{name}`: {'met' if ok else 'NOT met'}" for name, ok in data["targets"].items()]
+    lines += _published_lines(out, meta)
     agent_data = out / "agent_data.json"
     if agent_data.exists():
         from agents.experiments.agent_data import agent_data_lines

@@ -11,6 +11,11 @@ Reads mutmut's per-file results under ``mutants/`` and writes, beside this scrip
   matches its change; a survivor without a reason is listed as ``unexplained``.
 - ``report.md``: the same for a reader.
 
+Each module's entry records the SHA-256 of its source (``sha256``). With ``--keep-from`` an
+earlier ``results.json``, a module none of whose mutants this run reached keeps that file's
+entry and survivors, when its source is unchanged (same hash): runs of a few modules at a time
+add up to the whole (``kept`` lists the modules taken from the earlier file).
+
 When the rest of the mutants was sampled (``sample.py``'s ``sample.json``, ``--sample``),
 ``estimate`` gives the killed ratio over *all* configured mutants: per module, the mutants
 run count as they are and the module's unrun ones are expected to be killed at the rate of
@@ -23,6 +28,7 @@ Run from the repository root after ``mutmut run``: ``python docs/results/mutatio
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import re
 import sys
@@ -72,11 +78,18 @@ def _reason(reasons: dict, name: str, change: str) -> str:
     return next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), "unexplained")
 
 
-def estimate(status: dict[str, dict[str, str]], sample: dict) -> dict:
+def estimate(status: dict[str, dict[str, str]], sample: dict, kept: dict[str, dict] | None = None) -> dict:
     """Stratified estimate of the killed ratio over every mutant (module docstring), from the
-    per-module ``status`` and ``sample`` (``sample.json``)."""
+    per-module ``status`` and ``sample`` (``sample.json``); ``kept``: entries taken from an
+    earlier run (:func:`summarise`) for modules this run did not reach, counted as they are."""
     killed = var = total = 0.0
+    for module, entry in (kept or {}).items():
+        if entry["not_run"]:
+            return {"killed_ratio": None, "why": f"{module}: kept from an earlier run with mutants not run"}
+        total, killed = total + entry["total"], killed + entry["killed"] + entry["timeout"]
     for module, per in status.items():
+        if module in (kept or {}):
+            continue
         total += len(per)
         killed += sum(s in KILLED for s in per.values())
         left = sum(s in NOT_RUN for s in per.values())
@@ -96,31 +109,53 @@ def estimate(status: dict[str, dict[str, str]], sample: dict) -> dict:
             "seed": sample.get("seed"), "fraction": sample.get("fraction")}  # fmt: skip
 
 
-def summarise(reasons: dict, sample: dict | None = None) -> dict:
-    """The results document (see the module docstring)."""
+def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = None) -> dict:
+    """The results document (see the module docstring); ``earlier``: a previous results
+    document whose unchanged modules stand in for the ones this run did not reach."""
     status, _ = _status_and_diffs(set())
     surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
     status, diffs = _status_and_diffs(surviving)
-    modules, total = {}, Counter()
+    modules, kept = {}, []
     for path, per in sorted(status.items()):
         counts = Counter(per.values())
-        total += counts
         if per:
-            modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts)}
+            modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts),
+                             "sha256": source_hash(path)}  # fmt: skip
+        old = (earlier or {}).get("modules", {}).get(path)
+        if per and old and all(s in NOT_RUN for s in per.values()) and old.get("sha256") == source_hash(path):
+            modules[path], _ = old, kept.append(path)
     survivors = [
         {"mutant": k, "status": s, "change": (c := diffs.get(k, "")), "reason": _reason(reasons, k, c)}
-        for per in status.values() for k, s in sorted(per.items()) if k in surviving
+        for path, per in status.items() if path not in kept
+        for k, s in sorted(per.items()) if k in surviving
+    ] + [
+        {**s, "reason": _reason(reasons, s["mutant"], s["change"])}
+        for s in (earlier or {}).get("survivors", []) if _module_of(s["mutant"]) in kept
     ]  # fmt: skip
     explained = sum(r["reason"] != "unexplained" for r in survivors)
-    run = sum(n for st, n in total.items() if st not in NOT_RUN)
+    total = {k: sum(v[k] for v in modules.values()) for k in _named(Counter())}
+    n_all = sum(v["total"] for v in modules.values())
+    run = n_all - total["not_run"]
     return {
-        **_named(total), "total": sum(total.values()), "killed_ratio": round(_ratio(total), 4),
-        "run_fraction": round(run / max(1, sum(total.values())), 4),
+        **total, "total": n_all,
+        "killed_ratio": round((total["killed"] + total["timeout"]) / run, 4) if run else float("nan"),
+        "run_fraction": round(run / max(1, n_all), 4),
         "modules_complete": [m for m, v in modules.items() if v["not_run"] == 0],
+        "kept": kept,
         "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
-        **({"estimate": estimate(status, sample)} if sample else {}),
+        **({"estimate": estimate(status, sample, {m: modules[m] for m in kept})} if sample else {}),
         "modules": modules, "survivors": survivors,
     }  # fmt: skip
+
+
+def source_hash(path: str) -> str:
+    """SHA-256 of the module's source, as the run saw it (``path`` relative to the root)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _module_of(mutant: str) -> str:
+    """A mutant's module path: ``a.b.c.x_f__mutmut_3`` -> ``a/b/c.py``."""
+    return "/".join(mutant.split(".")[:-1]) + ".py"
 
 
 def _named(counts: Counter) -> dict[str, int]:
@@ -150,6 +185,16 @@ def report(res: dict) -> str:
         f"{res['not_run']} of the {res['total']} mutants not run (run fraction {res['run_fraction']:.3f});",
         f"survivors explained: {res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
         *_estimate_lines(res.get("estimate")),
+        *(
+            [
+                "",
+                "Taken from an earlier run of the same source (`--keep-from`, same SHA-256): "
+                + ", ".join(f"`{m}`" for m in res["kept"])
+                + ".",
+            ]
+            if res.get("kept")
+            else []
+        ),
         "",
         "| module | mutants | not run | killed ratio (of those run) | survived | no test |",
         "|---|---|---|---|---|---|",
@@ -189,13 +234,17 @@ def main(argv: list[str] | None = None) -> int:
         "--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons: {mutant: reason}"
     )
     ap.add_argument("--sample", type=Path, default=HERE / "sample.json", help="sample.py's record, if any")
+    ap.add_argument(
+        "--keep-from", type=Path, help="an earlier results.json: its unchanged modules this run did not reach"
+    )
     args = ap.parse_args(argv)
     if not Path("mutants").is_dir():
         print("no mutants/ folder here: run `make mutate` from the repository root", file=sys.stderr)
         return 2
     reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
     sample = json.loads(args.sample.read_text()) if args.sample.exists() else None
-    res = summarise(reasons, sample)
+    earlier = json.loads(args.keep_from.read_text()) if args.keep_from else None
+    res = summarise(reasons, sample, earlier)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))
