@@ -354,6 +354,10 @@ def test_rl_zoo3_trains_on_the_env_with_the_committed_hyperparameters(
     assert list(tmp_path.glob(f"{algo}/*_1/*.zip")), out.stdout[-2000:]
 
 
+def _no_bare_constant(name: str) -> None:
+    pytest.fail(f"bare {name} in a JSON file (not standard JSON)")
+
+
 def test_rl_experiment_and_agent_data_loop_smoke(
     models: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -383,6 +387,8 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     assert np.isfinite(data["pilot"]["hover"]["mean_return"]) and "hover" in data["gap_closed"]
     assert "hover_state_success_ge_0.9" in data["targets"]
     assert data["provenance"]["wall_s"] > 0 and "Provenance: code " in (tmp_path / "report.md").read_text()
+    for written in [tmp_path / "results.json", *(tmp_path / "agents").glob("*/result.json")]:
+        json.loads(written.read_text(), parse_constant=_no_bare_constant)
     partial = report_existing(tmp_path, replace(cfg, variants=("state", "belief-param")))
     assert partial["meta"]["not_trained"] == ["hover-belief-param-0"]
     assert partial["provenance"] == data["provenance"]  # the training run's, not the report's
@@ -539,3 +545,25 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
     assert [r["resumed_from_steps"] for r in run["resumes"]] == [256]
     after = np.load(out / "evaluations.npz")["timesteps"].tolist()
     assert before == [64, 128, 192, 256] and after == [*before, 320, 384]
+
+
+def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.CaptureFixture[str]) -> None:
+    """The command the published SAC report prints for one agent (``gpbf eval-agent ...
+    --episodes 100 --seed 5000``) returns that agent's recorded figures: the committed files
+    still load and fly as they did (a change to the simulator or the observations fails here
+    until the agents are trained again)."""
+    import json
+
+    from agents.cli import main as gpbf_main
+
+    root = Path(__file__).resolve().parents[1]
+    report = (root / "docs" / "results" / "sac_hover_state" / "report.md").read_text()
+    cmd = next(ln for ln in report.splitlines() if ln.startswith("| hover-state-1 |")).split("`")[1].split()
+    assert cmd[:2] == ["gpbf", "eval-agent"] and cmd[3:] == ["--episodes", "100", "--seed", "5000"]
+    model = root / cmd[2]
+    capsys.readouterr()
+    assert gpbf_main(["eval-agent", str(model), *cmd[3:], "--quiet"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    saved = json.loads((model.parent / "result.json").read_text())
+    assert res["mean_return"] == pytest.approx(saved["mean_return"], rel=1e-9)
+    assert res["success_rate"] == saved["success_rate"] == 0.99

@@ -13,6 +13,7 @@ share of the ellipse-to-state gap the GP-belief agent closes; each target's verd
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -28,7 +29,7 @@ from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
 from agents.sim import collect_flight
 from estimator_service.cli_args import Parser, checked_int
-from estimator_service.files import atomic_write_text
+from estimator_service.files import atomic_write_text, json_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
 
@@ -78,7 +79,7 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
             tensorboard=out / "tensorboard" if cfg.tensorboard else None,
         )
         res = evaluate_agent(path, episodes=cfg.episodes, seed=EVAL_SEED)
-    atomic_write_text(done, json.dumps(res))
+    atomic_write_text(done, json_text(res))
     return res
 
 
@@ -114,7 +115,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
         runs.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in cfg.tasks}
     data = {**summarise(runs, pilot, cfg), "provenance": provenance(time.monotonic() - start)}
-    atomic_write_text(out / "results.json", json.dumps(data, indent=2))
+    atomic_write_text(out / "results.json", json_text(data, indent=2))
     write_report(out, data)
     return data
 
@@ -140,9 +141,14 @@ def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
     earlier = out / "results.json"  # the training run's record stays with its agents
     if earlier.is_file() and "provenance" in (before := json.loads(earlier.read_text())):
         data["provenance"] = before["provenance"]
-    atomic_write_text(out / "results.json", json.dumps(data, indent=2))
+    atomic_write_text(out / "results.json", json_text(data, indent=2))
     write_report(out, data)
     return data
+
+
+def _nan(v: float | None) -> float:
+    """A figure read back from JSON (None: not measured) as a float (NaN)."""
+    return math.nan if v is None else v
 
 
 def gap_closed(by_variant: dict[str, dict[str, float]], key: str = "mean_return") -> float:
@@ -164,7 +170,7 @@ def summarise(
                 "success_rate": float(np.mean([x["success_rate"] for x in rs])),
                 "mean_return": float(r.mean()),
                 "return_spread_across_seeds": float(r.std()),
-                "belief_position_rms_mm": float(np.nanmean([x["belief_position_rms_mm"] for x in rs]))
+                "belief_position_rms_mm": float(np.nanmean([_nan(x["belief_position_rms_mm"]) for x in rs]))
                 if variant.startswith("belief")
                 else None,
                 "runs": rs,
