@@ -543,6 +543,7 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
         "train-agent",
     ]  # the first run's
     assert [r["resumed_from_steps"] for r in run["resumes"]] == [256]
+    assert "/" not in run["resumes"][0]["command"][0]  # this process's program, by its name only
     after = np.load(out / "evaluations.npz")["timesteps"].tolist()
     assert before == [64, 128, 192, 256] and after == [*before, 320, 384]
 

@@ -253,7 +253,9 @@ def train_agent(
     settings = {"timesteps": timesteps, "n_envs": n_envs, "eval_freq": eval_freq,
                 "eval_episodes": eval_episodes, "checkpoint_freq": checkpoint_freq, "small": small,
                 "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
-    _record_run(out, {"command": list(sys.argv if command is None else command), "spec": asdict(spec),
+    argv = list(sys.argv if command is None else command) or [""]
+    argv[0] = Path(argv[0]).name  # the program by its name: no machine's paths in the record
+    _record_run(out, {"command": argv, "spec": asdict(spec),
                       **settings, "resumed_from_steps": None if start is None else start[1],
                       "versions": _versions()})  # fmt: skip
     checkpoints = _Checkpoints(
