@@ -169,11 +169,13 @@ def test_a_fleet_on_three_hosts_survives_a_router_and_a_whole_host(lan_ok, model
     assert all(rounds[f]["answered"] == BLIMPS for f in ("none", "router", "after")), summary
     assert rounds["router"]["slowest_s"] < 3.0, summary
     # the machine's loss: measured 2.0 s; about 1 run in 16 one blimp's step stalls for the client's
-    # whole 10 s of retries (cause not found, docs/deployment.md): then it fails by time-out only,
-    # never refused, and the next round serves it
-    failed = [s for s in rounds["host"]["served"].values() if s.startswith("error")]
-    assert all(float(s.split()[2]) >= 9.5 for s in failed) and len(failed) <= 1, rounds["host"]["served"]
-    assert rounds["host"]["slowest_s"] < (12.0 if failed else 5.0), summary
+    # whole 10 s of retries (cause not found, docs/deployment.md): then it is answered at the end
+    # of them or fails by time-out, never refused, and the next round serves it
+    host = rounds["host"]
+    stalled = {b: t for b, t in host["took"].items() if t >= 5.0}
+    assert len(stalled) <= 1 and all(9.5 <= t < 12.0 for t in stalled.values()), (host["took"], summary)
+    failed = [s for s in host["served"].values() if s.startswith("error")]
+    assert all(float(s.split()[2]) >= 9.5 for s in failed) and len(failed) <= len(stalled), host["served"]
     assert rounds["none"]["served"] == owners and rounds["router"]["served"] == owners
     assert set(rounds["after"]["served"].values()) == {b_id}  # host a's blimps moved to b
     moved = {b for b, s in owners.items() if s == a_id}

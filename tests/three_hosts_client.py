@@ -39,10 +39,10 @@ def wait_for_fleet(session, n: int, within: float = 30.0) -> None:
     raise SystemExit(f"no fleet of {n}: {list_sessions(session)}")
 
 
-def round_of_steps(clients, k: int) -> tuple[dict[str, str], float, int]:
+def round_of_steps(clients, k: int) -> dict:
     """Step every blimp once: who served each (or the error), the slowest step (s), the
-    steps answered."""
-    served, slowest, answered = {}, 0.0, 0
+    steps answered and each blimp's step time (s)."""
+    served, took, answered = {}, {}, 0
     for c in clients:
         t0 = time.monotonic()
         try:
@@ -50,8 +50,8 @@ def round_of_steps(clients, k: int) -> tuple[dict[str, str], float, int]:
             answered += 1
         except Exception as exc:
             served[c.blimp] = f"error after {time.monotonic() - t0:.2f} s: {exc}"
-        slowest = max(slowest, time.monotonic() - t0)
-    return served, slowest, answered
+        took[c.blimp] = round(time.monotonic() - t0, 3)
+    return {"slowest_s": max(took.values()), "answered": answered, "served": served, "took": took}
 
 
 def main(spec: dict) -> dict:
@@ -63,21 +63,16 @@ def main(spec: dict) -> dict:
     ]
     owners = {c.blimp: c.reset(np.zeros(12), STD, t=0.0)["service"] for c in clients}
     out = {"owners": owners, "rounds": []}
-    served, slowest, answered = round_of_steps(clients, 0)
-    out["rounds"].append({"fault": "none", "slowest_s": slowest, "answered": answered, "served": served})
+    out["rounds"].append({"fault": "none", **round_of_steps(clients, 0)})
     os.kill(spec["kill_router"], signal.SIGKILL)  # this host's router: the clients keep the other
-    served, slowest, answered = round_of_steps(clients, 1)
-    out["rounds"].append({"fault": "router", "slowest_s": slowest, "answered": answered, "served": served})
+    out["rounds"].append({"fault": "router", **round_of_steps(clients, 1)})
     ns, link = spec["host_link"]
     subprocess.run(["ip", "-n", ns, "link", "set", link, "down"], check=True)  # the host drops off
     for pid in spec["kill_host"]:
         os.kill(pid, signal.SIGKILL)
     t0 = time.monotonic()
-    served, slowest, answered = round_of_steps(clients, 2)
-    out["rounds"].append({"fault": "host", "slowest_s": slowest, "answered": answered, "served": served,
-                          "round_s": time.monotonic() - t0})  # fmt: skip
-    served, slowest, answered = round_of_steps(clients, 3)
-    out["rounds"].append({"fault": "after", "slowest_s": slowest, "answered": answered, "served": served})
+    out["rounds"].append({"fault": "host", **round_of_steps(clients, 2), "round_s": time.monotonic() - t0})
+    out["rounds"].append({"fault": "after", **round_of_steps(clients, 3)})
     out["resyncs"] = {c.blimp: c.resyncs for c in clients}
     out["views"] = list_sessions(session)
     out["answers"] = {
