@@ -31,7 +31,7 @@ bench: $(STAMP)
 # time: mutmut keeps stale copies of the modules it does not mutate.
 mutate: $(STAMP)
 	rm -rf mutants
-	$(VENV)/bin/mutmut run --max-children $$(nproc)
+	$(VENV)/bin/python docs/results/mutation/run_mutmut.py run --max-children $$(nproc)
 	$(VENV)/bin/python docs/results/mutation/summarise.py
 
 # The same in about an hour: the filters and the service's limits completely, a seeded random
@@ -39,8 +39,8 @@ mutate: $(STAMP)
 # estimated from it with its 95 % interval (summarise.py).
 mutate-sample: $(STAMP)
 	rm -rf mutants
-	$(VENV)/bin/mutmut run --max-children $$(nproc) "estimator_service.service.limits*"
-	$(VENV)/bin/mutmut run --max-children $$(nproc) \
+	$(VENV)/bin/python docs/results/mutation/run_mutmut.py run --max-children $$(nproc) "estimator_service.service.limits*"
+	$(VENV)/bin/python docs/results/mutation/run_mutmut.py run --max-children $$(nproc) \
 		$$($(VENV)/bin/python docs/results/mutation/sample.py --fraction 0.1 --seed 0)
 	$(VENV)/bin/python docs/results/mutation/summarise.py
 

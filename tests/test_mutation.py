@@ -121,3 +121,34 @@ def test_sampled_mutants_give_a_stratified_estimate_with_its_interval() -> None:
     full = sample.draw({"pkg/a.py": ["x", "y"], "pkg/b.py": ["z"]}, 0.1, 3, ("pkg/b.py",))
     assert len(full["pkg/a.py"]) == 1 and full["pkg/b.py"] == ["z"]
     assert summarise.estimate({"pkg/a.py": {"x": "not checked"}}, {"sample": {}})["killed_ratio"] is None
+
+
+def test_a_test_that_leaves_a_child_process_does_not_stop_the_run(tmp_path: Path) -> None:
+    """A test module starts a process it never waits for (in mutmut's own process, during its
+    clean and coverage runs) that ends while mutants run: mutmut 3.8 alone stops there with a
+    ``KeyError`` (its worker pool waits for any child); ``run_mutmut.py`` reaps it and runs
+    every mutant."""
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "area.py").write_text(
+        "def area(w, h):\n    return w * h\n\n\ndef twice(x):\n    return 2 * x + 0\n"
+    )
+    (tmp_path / "tests" / "test_area.py").write_text(
+        "import subprocess\nimport sys\nimport time\n\nfrom pkg.area import area, twice\n\n"
+        "STRAY = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(1.0)'])\n\n\n"
+        "def test_area():\n    time.sleep(0.3)\n    assert area(2, 3) == 6 and twice(3) == 6\n"
+    )
+    (tmp_path / "pyproject.toml").write_text(
+        '[tool.mutmut]\nsource_paths = ["pkg"]\npytest_add_cli_args_test_selection = ["tests"]\n'
+    )
+    run = subprocess.run(
+        [sys.executable, SUMMARISE.with_name("run_mutmut.py"), "run", "--max-children", "1"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0 and "KeyError" not in run.stderr, run.stderr[-2000:]
+    out = tmp_path / "out"
+    subprocess.run([sys.executable, SUMMARISE, "--out", out, "--reasons", tmp_path / "none.json"],
+                   cwd=tmp_path, capture_output=True, timeout=120, check=True)  # fmt: skip
+    res = json.loads((out / "results.json").read_text())
+    assert res["not_run"] == 0 and res["total"] >= 5 and res["killed"] > 0
