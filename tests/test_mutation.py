@@ -85,13 +85,22 @@ def _a_run_of_one_module_keeps_the_other_from_the_earlier_run(root: Path, cmd: l
                    timeout=300, check=True)  # fmt: skip
     subprocess.run([*cmd, "--keep-from", first], cwd=root, capture_output=True, timeout=120, check=True)
     res = json.loads((root / "out" / "results.json").read_text())
-    assert res["kept"] == ["pkg/twice.py"] and res["modules"] == earlier["modules"]
-    assert res["not_run"] == 0 and res["killed_ratio"] == earlier["killed_ratio"]
+    twice = "pkg/twice.py"
+    assert res["kept"] == [twice] and res["modules"][twice] == earlier["modules"][twice]
+    assert res["not_run"] == 0 and res["total"] == earlier["total"]
+    assert res["killed"] + res["timeout"] == earlier["killed"] + earlier["timeout"]
     assert sorted(s["mutant"] for s in res["survivors"]) == sorted(s["mutant"] for s in earlier["survivors"])
+    other = {**earlier, "setup": {**earlier["setup"], "mutmut": "0.0"}}  # another mutmut made those mutants
+    first.write_text(json.dumps(other))
+    run = subprocess.run([*cmd, "--keep-from", first], cwd=root, capture_output=True, text=True, timeout=120,
+                         check=True)  # fmt: skip
+    assert json.loads((root / "out" / "results.json").read_text())["kept"] == []
+    assert "nothing kept" in run.stderr
+    first.write_text(json.dumps(earlier))
     (root / "pkg" / "twice.py").write_text("def twice(x):\n    return x + x\n")
     subprocess.run([*cmd, "--keep-from", first], cwd=root, capture_output=True, timeout=120, check=True)
     res = json.loads((root / "out" / "results.json").read_text())
-    assert res["kept"] == [] and res["modules"]["pkg/twice.py"]["not_run"] > 0
+    assert res["kept"] == [] and res["modules"][twice]["not_run"] > 0
 
 
 def _script(name: str):
@@ -121,6 +130,11 @@ def test_sampled_mutants_give_a_stratified_estimate_with_its_interval() -> None:
     full = sample.draw({"pkg/a.py": ["x", "y"], "pkg/b.py": ["z"]}, 0.1, 3, ("pkg/b.py",))
     assert len(full["pkg/a.py"]) == 1 and full["pkg/b.py"] == ["z"]
     assert summarise.estimate({"pkg/a.py": {"x": "not checked"}}, {"sample": {}})["killed_ratio"] is None
+    kept = {"pkg/b.py": {"total": 10, "killed": 8, "timeout": 1, "not_run": 0}}  # run before, counted as is
+    both = summarise.estimate({"pkg/a.py": per}, {"population": {"pkg/a.py": 6}, "sample": drawn}, kept)
+    assert both["killed_ratio"] == round((7 + 9) / 20, 4) and both["ci95"][1] - both["ci95"][0] < 2 * half
+    partial = {"pkg/b.py": {**kept["pkg/b.py"], "not_run": 1}}
+    assert summarise.estimate({}, {"sample": {}}, partial)["killed_ratio"] is None
 
 
 def test_a_test_that_leaves_a_child_process_does_not_stop_the_run(tmp_path: Path) -> None:

@@ -548,11 +548,14 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
     assert before == [64, 128, 192, 256] and after == [*before, 320, 384]
 
 
+@pytest.mark.slow
 def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.CaptureFixture[str]) -> None:
     """The command the published SAC report prints for one agent (``gpbf eval-agent ...
     --episodes 100 --seed 5000``) returns that agent's recorded figures: the committed files
     still load and fly as they did (a change to the simulator or the observations fails here
-    until the agents are trained again)."""
+    until the agents are trained again). Equal to the last digit on the machine that trained
+    them; another CPU's rounding may move single episodes, so the mean return is held to
+    three standard errors of its episodes and the success rate to 0.05."""
     import json
 
     from agents.cli import main as gpbf_main
@@ -566,5 +569,5 @@ def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.Ca
     assert gpbf_main(["eval-agent", str(model), *cmd[3:], "--quiet"]) == 0
     res = json.loads(capsys.readouterr().out)
     saved = json.loads((model.parent / "result.json").read_text())
-    assert res["mean_return"] == pytest.approx(saved["mean_return"], rel=1e-9)
-    assert res["success_rate"] == saved["success_rate"] == 0.99
+    assert abs(res["mean_return"] - saved["mean_return"]) <= 3 * saved["std_return"] / 10, (res, saved)
+    assert abs(res["success_rate"] - saved["success_rate"]) <= 0.05 and saved["success_rate"] == 0.99

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from estimator_service.cli_args import package_version
 
-__all__ = ["code_version", "provenance", "provenance_line"]
+__all__ = ["code_version", "named_argv", "provenance", "provenance_line"]
 
 _ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,11 +26,16 @@ def code_version() -> str:
     return f"{commit}{'+changes' if dirty else ''}"
 
 
+def named_argv(argv: list[str] | None = None) -> list[str]:
+    """``argv`` (default: this process's) with its program by name only: no machine's paths."""
+    argv = list(sys.argv if argv is None else argv) or [""]
+    return [Path(argv[0]).name, *argv[1:]]
+
+
 def provenance(wall_s: float, argv: list[str] | None = None) -> dict[str, object]:
     """``{"code", "command", "wall_s"}`` of the running experiment (the command's program
     by its name, e.g. ``gpbf reproduce --quick``)."""
-    argv = list(sys.argv if argv is None else argv) or [""]
-    command = " ".join([Path(argv[0]).name, *argv[1:]])
+    command = " ".join(named_argv(argv))
     return {"code": code_version(), "command": command, "wall_s": round(wall_s, 1)}
 
 

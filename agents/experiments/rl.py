@@ -138,9 +138,10 @@ def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in runs}
     data = summarise(runs, pilot, cfg)
     data["meta"]["not_trained"] = missing
-    earlier = out / "results.json"  # the training run's record stays with its agents
+    earlier = out / "results.json"  # the training run's record and settings stay with its agents
     if earlier.is_file() and "provenance" in (before := json.loads(earlier.read_text())):
         data["provenance"] = before["provenance"]
+        data["meta"].update({k: v for k, v in before.get("meta", {}).items() if k in ("jobs", "tensorboard")})
     atomic_write_text(out / "results.json", json_text(data, indent=2))
     write_report(out, data)
     return data

@@ -77,17 +77,26 @@ def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
     agents = sorted((out / "agents").glob("*/model.zip"))
     if not agents:
         return []
-    lines = ["", "Each agent is published beside this report; this command reproduces its figures "
-             "(a row of the table is the mean over its seeds):", "", "| agent | command | success rate | "
-             "mean return |", "| --- | --- | ---: | ---: |"]  # fmt: skip
+    lines = ["", "The command that flies each agent (its `model.zip` in `agents/` beside this report) on "
+             "these episodes, and what it gave here (a row of the table is the mean over its seeds):", "",
+             "| agent | command | success rate | mean return |", "| --- | --- | ---: | ---: |"]  # fmt: skip
     for model in agents:
         done = model.parent / "result.json"
         res = json.loads(done.read_text()) if done.exists() else {}
-        cmd = f"gpbf eval-agent {model.as_posix()} --episodes {meta['episodes']} --seed {meta['eval_seed']}"
+        cmd = f"gpbf eval-agent {_shown(model)} --episodes {meta['episodes']} --seed {meta['eval_seed']}"
         figures = (f"{res['success_rate']:.2f} | {res['mean_return']:.1f}" if "mean_return" in res
                    else "- | -")  # fmt: skip
         lines.append(f"| {model.parent.name} | `{cmd}` | {figures} |")
     return lines
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the working folder where it lies below it (no machine's paths in a
+    report written from the repository root), else as given."""
+    try:
+        return path.resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return path.as_posix()
 
 
 def write_report(out: Path, data: dict[str, Any]) -> None:

@@ -14,7 +14,6 @@ import math
 import os
 import platform
 import re
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from importlib import metadata
@@ -28,6 +27,7 @@ from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback,
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
+from agents.experiments.provenance import named_argv
 from agents.rl.batched import BeliefVecEnv
 from agents.rl.hyperparams import Hyperparams, load_hyperparams
 from agents.rl.registry import TASK_ENVS, agent_env_id, episode_success
@@ -253,9 +253,7 @@ def train_agent(
     settings = {"timesteps": timesteps, "n_envs": n_envs, "eval_freq": eval_freq,
                 "eval_episodes": eval_episodes, "checkpoint_freq": checkpoint_freq, "small": small,
                 "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
-    argv = list(sys.argv if command is None else command) or [""]
-    argv[0] = Path(argv[0]).name  # the program by its name: no machine's paths in the record
-    _record_run(out, {"command": argv, "spec": asdict(spec),
+    _record_run(out, {"command": named_argv(command), "spec": asdict(spec),
                       **settings, "resumed_from_steps": None if start is None else start[1],
                       "versions": _versions()})  # fmt: skip
     checkpoints = _Checkpoints(

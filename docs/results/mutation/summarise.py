@@ -35,6 +35,8 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from estimator_service.files import json_text
+
 HERE = Path(__file__).resolve().parent
 KILLED = {"killed", "timeout", "segfault", "caught by type check"}
 NOT_RUN = {"skipped", "not checked", "check was interrupted by user"}
@@ -115,14 +117,17 @@ def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = 
     status, _ = _status_and_diffs(set())
     surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
     status, diffs = _status_and_diffs(surviving)
-    modules, kept = {}, []
+    modules, kept, same_setup = {}, [], earlier is not None and earlier.get("setup") == setup()
+    if earlier is not None and not same_setup:
+        print("--keep-from: the earlier run had another mutmut or [tool.mutmut] (or recorded neither): "
+              "nothing kept", file=sys.stderr)  # fmt: skip
     for path, per in sorted(status.items()):
         counts = Counter(per.values())
         if per:
             modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts),
                              "sha256": source_hash(path)}  # fmt: skip
-        old = (earlier or {}).get("modules", {}).get(path)
-        if per and old and all(s in NOT_RUN for s in per.values()) and old.get("sha256") == source_hash(path):
+        old = (earlier or {}).get("modules", {}).get(path) if same_setup else None
+        if per and old and all(s in NOT_RUN for s in per.values()) and _same_module(old, path, len(per)):
             modules[path], _ = old, kept.append(path)
     survivors = [
         {"mutant": k, "status": s, "change": (c := diffs.get(k, "")), "reason": _reason(reasons, k, c)}
@@ -138,14 +143,31 @@ def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = 
     run = n_all - total["not_run"]
     return {
         **total, "total": n_all,
-        "killed_ratio": round((total["killed"] + total["timeout"]) / run, 4) if run else float("nan"),
-        "run_fraction": round(run / max(1, n_all), 4),
+        "killed_ratio": round((total["killed"] + total["timeout"]) / run, 4) if run else None,
+        "run_fraction": round(run / max(1, n_all), 4), "setup": setup(),
         "modules_complete": [m for m, v in modules.items() if v["not_run"] == 0],
         "kept": kept,
         "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
         **({"estimate": estimate(status, sample, {m: modules[m] for m in kept})} if sample else {}),
         "modules": modules, "survivors": survivors,
     }  # fmt: skip
+
+
+def setup() -> dict[str, str]:
+    """What makes the mutants of a module: mutmut's version and the SHA-256 of the
+    ``[tool.mutmut]`` table of ``pyproject.toml`` (read from the working directory)."""
+    import tomllib
+    from importlib.metadata import version
+
+    table = tomllib.loads(Path("pyproject.toml").read_text()).get("tool", {}).get("mutmut", {})
+    return {"mutmut": version("mutmut"), "config_sha256": hashlib.sha256(
+        json.dumps(table, sort_keys=True).encode()).hexdigest()}  # fmt: skip
+
+
+def _same_module(old: dict, path: str, mutants: int) -> bool:
+    """An earlier entry stands for ``path`` only if made from the same source and mutants
+    (the tests that scored it are the earlier run's)."""
+    return old.get("sha256") == source_hash(path) and old.get("total") == mutants
 
 
 def source_hash(path: str) -> str:
@@ -180,7 +202,7 @@ def report(res: dict) -> str:
         "tests marked `slow` are left out; `raise` statements keep their message text). A mutant",
         "is *killed* when a test fails or it times out; one that no test reaches counts as surviving.",
         "",
-        f"**killed ratio {res['killed_ratio']:.3f}** over the mutants run ({res['killed']} killed,",
+        f"**killed ratio {_three(res['killed_ratio'])}** over the mutants run ({res['killed']} killed,",
         f"{res['timeout']} timed out, {res['survived']} survived, {res['no_tests']} reached by no test);",
         f"{res['not_run']} of the {res['total']} mutants not run (run fraction {res['run_fraction']:.3f});",
         f"survivors explained: {res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
@@ -200,7 +222,7 @@ def report(res: dict) -> str:
         "|---|---|---|---|---|---|",
     ]
     rows = [
-        f"| `{m}` | {v['total']} | {v['not_run']} | {v['killed_ratio']:.3f} | {v['survived']} | "
+        f"| `{m}` | {v['total']} | {v['not_run']} | {_three(v['killed_ratio'])} | {v['survived']} | "
         f"{v['no_tests']} |"
         for m, v in res["modules"].items()
     ]
@@ -209,6 +231,11 @@ def report(res: dict) -> str:
         f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in res["survivors"]
     ]
     return "\n".join([*head, *rows, *tail]) + "\n"
+
+
+def _three(x: float | None) -> str:
+    """A ratio to three places; ``-`` where nothing was run (None, or NaN before JSON)."""
+    return "-" if x is None or x != x else f"{x:.3f}"
 
 
 def _estimate_lines(est: dict | None) -> list[str]:
@@ -246,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     earlier = json.loads(args.keep_from.read_text()) if args.keep_from else None
     res = summarise(reasons, sample, earlier)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    (args.out / "results.json").write_text(json_text(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))
     keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "not_run", "total", "run_fraction",
             "survivors_unexplained")  # fmt: skip
