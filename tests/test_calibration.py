@@ -29,6 +29,7 @@ from estimator_service.models.calibration import (
     NoiseScaledPrediction,
     read_noise_scales,
     read_observation_scales,
+    read_process_scales,
     write_noise_scales,
 )
 from estimator_service.store import seal
@@ -54,6 +55,12 @@ def test_scales_file_round_trip_merge_and_errors(tmp_path: Path) -> None:
     write_noise_scales(tmp_path, {"param": 4.5}, note="x")
     assert read_noise_scales(tmp_path) == {"gp": 2.0, "param": 4.5}
     assert not list(tmp_path.glob("*.tmp"))  # written, then renamed
+    write_noise_scales(tmp_path, {}, observation={"gp": [1.5, 2.5]}, process={"gp": [3.0, 0.5, 2.0]})
+    write_noise_scales(tmp_path, {}, process={"egp": [4.0]})  # merged with what the file has
+    assert {k: v.tolist() for k, v in read_observation_scales(tmp_path).items()} == {"gp": [1.5, 2.5]}
+    assert {k: v.tolist() for k, v in read_process_scales(tmp_path).items()} == {"gp": [3.0, 0.5, 2.0],
+                                                                                   "egp": [4.0]}  # fmt: skip
+    assert read_noise_scales(tmp_path) == {"gp": 2.0, "param": 4.5}
     (tmp_path / CALIBRATION_FILE).write_text('{"noise_scale": {"gp": -1}}')
     with pytest.raises(ValueError, match="finite and > 0"):
         read_noise_scales(tmp_path)

@@ -570,6 +570,8 @@ def test_an_enhanced_gps_variance_includes_the_noise_by_default() -> None:
     with_noise, latent = egp.predict(q), egp.predict(q, include_noise=False)
     np.testing.assert_array_equal(with_noise.var, egp.residual.predict(q).var)
     assert np.all(with_noise.var > latent.var + 1e-3)
+    mean_only = egp.predict(q, return_var=False)  # no variance asked: none computed
+    assert mean_only.var is None and np.array_equal(mean_only.mean, with_noise.mean)
 
 
 def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:

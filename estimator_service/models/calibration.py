@@ -66,6 +66,9 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 CALIBRATION_FILE = "calibration.json"
+NOISE_SCALE = "noise_scale"  # calibration.json key: {kind: process-noise factor}
+OBSERVATION_SCALES = "observation_noise_scale"  # calibration.json key: {kind: (m,) factors}
+PROCESS_SCALES = "process_noise_scale"  # calibration.json key: {kind: (n,) factors}
 PROCESS_CEILING = "process_variance_ceiling"  # calibration.json key: (n,) variances
 NIS_REFERENCE = "nis_reference"  # calibration.json key: {kind: the calibrated EKF's mean NIS/dof}
 ADAPTIVE = "adaptive"  # calibration.json key: {kind: whether the held-out blocks chose the adaptive filter}
@@ -217,7 +220,7 @@ def _section(folder: str | os.PathLike[str], key: str, convert, want: str) -> di
 def read_noise_scales(folder: str | os.PathLike[str]) -> dict[str, float]:
     """``{model kind: process-noise scale}`` from ``folder/calibration.json`` (empty when
     there is none)."""
-    scales = _section(folder, "noise_scale", lambda v: np.array(float(v)), "{kind: number}")
+    scales = _section(folder, NOISE_SCALE, lambda v: np.array(float(v)), "{kind: number}")
     return {k: float(v) for k, v in scales.items()}
 
 
@@ -225,7 +228,7 @@ def read_observation_scales(folder: str | os.PathLike[str]) -> dict[str, FloatAr
     """``{model kind: observation-noise scales (m,)}`` from ``folder/calibration.json``."""
     return _section(
         folder,
-        "observation_noise_scale",
+        OBSERVATION_SCALES,
         lambda v: np.array(v, dtype=np.float64).reshape(-1),
         "{kind: [numbers]}",
     )
@@ -276,7 +279,7 @@ def read_process_scales(folder: str | os.PathLike[str]) -> dict[str, FloatArray]
     (they multiply the one-step variances before the kind's ``noise_scale``)."""
     return _section(
         folder,
-        "process_noise_scale",
+        PROCESS_SCALES,
         lambda v: np.array(v, dtype=np.float64).reshape(-1),
         "{kind: [numbers]}",
     )
@@ -324,12 +327,12 @@ def write_noise_scales(
     if bad:  # refused before anything is written
         raise ValueError(f"{NIS_REFERENCE} values must be finite and > 0, got {bad}")
     vectors = {}
-    for key, new, read in (("observation_noise_scale", observation, read_observation_scales),
-                           ("process_noise_scale", process, read_process_scales)):  # fmt: skip
+    for key, new, read in ((OBSERVATION_SCALES, observation, read_observation_scales),
+                           (PROCESS_SCALES, process, read_process_scales)):  # fmt: skip
         vectors[key] = {k: v.tolist() for k, v in read(folder).items()}
         vectors[key].update({k: np.asarray(v, dtype=np.float64).tolist() for k, v in (new or {}).items()})
     old = _read(folder)  # other sections (the process-variance ceiling) are kept as they are
-    body = {**old, "noise_scale": merged, **vectors, "details": {**old.get("details", {}), **details}}
+    body = {**old, NOISE_SCALE: merged, **vectors, "details": {**old.get("details", {}), **details}}
     if levels:
         body[NIS_REFERENCE] = levels
     if adaptive:
