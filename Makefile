@@ -34,7 +34,7 @@ mutate: $(STAMP)
 	$(VENV)/bin/python docs/results/mutation/run_mutmut.py run --max-children $$(nproc)
 	$(VENV)/bin/python docs/results/mutation/summarise.py
 
-# The same in fewer hours (about 2.5 on 2 cores, measured 2026-12-05: 1,764 mutants in 43 min): the filters and the service's limits completely, a seeded random
+# The same in fewer hours (3 to 4 on 2 cores: on 2026-12-05 1,764 mutants took 43 min, the slowest 800 ran at 5 a minute): the filters and the service's limits completely, a seeded random
 # tenth of every other module's mutants (sample.py), and the killed ratio over all mutants
 # estimated from it with its 95 % interval (summarise.py).
 mutate-sample: $(STAMP)

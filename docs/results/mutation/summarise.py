@@ -196,7 +196,7 @@ def report(res: dict) -> str:
         "One operator, constant, name or argument of the code changed at a time (a *mutant*, made by",
         "[mutmut](https://github.com/boxed/mutmut) 3); the unit tests that reach the changed",
         "function run against it (`make mutate`: all mutants, hours on 2 cores; `make mutate-sample`:",
-        "a seeded random tenth of the GP and model mutants, about 2.5 hours; the configuration is",
+        "a seeded random tenth of the GP and model mutants, 3 to 4 hours; the configuration is",
         "`[tool.mutmut]` in",
         "`pyproject.toml`: `estimator_service/filters`, `gp`, `models` and `service/limits.py`;",
         "tests marked `slow` are left out; `raise` statements keep their message text). A mutant",
