@@ -359,7 +359,7 @@ def _no_bare_constant(name: str) -> None:
 
 
 def test_rl_experiment_and_agent_data_loop_smoke(
-    models: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    models: str, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Tiny budgets: results.json holds per task and variant the success rate and mean
     return, the pilot's figures and the targets; the report, both figures and the
@@ -379,8 +379,13 @@ def test_rl_experiment_and_agent_data_loop_smoke(
         timesteps=256, seeds=1, episodes=1, tasks=("hover",), variants=("state", "belief", "ellipses"),
         points=60, model="gp", jobs=1,
     )  # fmt: skip
+    import agents.experiments.rl as rl_module
+
+    versions = iter(["abc0001", "abc0002"])  # the checkout moves on while the agents train
+    monkeypatch.setattr(rl_module, "code_version", lambda: next(versions))
     run(tmp_path, cfg)
     data = json.loads((tmp_path / "results.json").read_text())
+    assert data["provenance"]["code"] == "abc0001"  # the code that trained them
     hover = data["results"]["hover"]
     assert set(hover) == {"state", "belief", "ellipses"}
     assert all(0 <= hover[v]["success_rate"] <= 1 and np.isfinite(hover[v]["mean_return"]) for v in hover)

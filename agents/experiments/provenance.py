@@ -32,11 +32,12 @@ def named_argv(argv: list[str] | None = None) -> list[str]:
     return [Path(argv[0]).name, *argv[1:]]
 
 
-def provenance(wall_s: float, argv: list[str] | None = None) -> dict[str, object]:
+def provenance(wall_s: float, argv: list[str] | None = None, code: str | None = None) -> dict[str, object]:
     """``{"code", "command", "wall_s"}`` of the running experiment (the command's program
-    by its name, e.g. ``gpbf reproduce --quick``)."""
+    by its name, e.g. ``gpbf reproduce --quick``); ``code``: :func:`code_version` taken when
+    the experiment started (default: now), since the checkout may move while it runs."""
     command = " ".join(named_argv(argv))
-    return {"code": code_version(), "command": command, "wall_s": round(wall_s, 1)}
+    return {"code": code or code_version(), "command": command, "wall_s": round(wall_s, 1)}
 
 
 def provenance_line(p: dict[str, object]) -> str:

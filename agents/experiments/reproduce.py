@@ -23,7 +23,7 @@ import numpy as np
 from agents.experiments.fig5 import fig5
 from agents.experiments.landmark import table10
 from agents.experiments.parallel import check_jobs, run_all
-from agents.experiments.provenance import provenance
+from agents.experiments.provenance import code_version, provenance
 from agents.experiments.report import FIG3_FILE, FIG4_FILE, FIG5_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
@@ -291,7 +291,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     provided ``out`` was made with the same settings."""
     check_jobs(jobs)
     resume_check(out, asdict(s))
-    t0 = time.perf_counter()
+    t0, code = time.perf_counter(), code_version()  # the code that runs, not the checkout at the end
     flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
     folds = split_folds(flight, s.folds)
     one_step = [k for k in ("param", "gp", "egp") if k in s.kinds]
@@ -321,7 +321,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
         {k: v.tolist() for k, v in read_observation_scales(f).items()} for f in folders
     ]
     results["wall_s"] = time.perf_counter() - t0
-    results["provenance"] = provenance(results["wall_s"])
+    results["provenance"] = provenance(results["wall_s"], code=code)
     from agents.experiments.report import verdicts, write_report
 
     results.update(verdicts(results))

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.experiments.provenance import provenance
+from agents.experiments.provenance import code_version, provenance
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
@@ -100,7 +100,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     ``result.json`` are not trained again: resume)."""
     from agents.experiments.rl_report import write_report
 
-    start = time.monotonic()
+    start, code = time.monotonic(), code_version()  # the code that trains, not the checkout at the end
     out.mkdir(parents=True, exist_ok=True)
     models = _models(out, cfg)
     todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
@@ -114,7 +114,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     for (task, variant, _), fut in zip(todo, futures, strict=True):
         runs.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in cfg.tasks}
-    data = {**summarise(runs, pilot, cfg), "provenance": provenance(time.monotonic() - start)}
+    data = {**summarise(runs, pilot, cfg), "provenance": provenance(time.monotonic() - start, code=code)}
     atomic_write_text(out / "results.json", json_text(data, indent=2))
     write_report(out, data)
     return data
