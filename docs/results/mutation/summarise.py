@@ -11,9 +11,11 @@ Reads mutmut's per-file results under ``mutants/`` and writes, beside this scrip
   matches its change; a survivor without a reason is listed as ``unexplained``.
 - ``report.md``: the same for a reader.
 
-Each module's entry records the SHA-256 of its source (``sha256``). With ``--keep-from`` an
-earlier ``results.json``, a module none of whose mutants this run reached keeps that file's
-entry and survivors, when its source is unchanged (same hash): runs of a few modules at a time
+Each module's entry records the SHA-256 of its source (``sha256``), and the document the
+mutmut version and ``[tool.mutmut]`` table that made the mutants (``setup``). With
+``--keep-from`` an earlier ``results.json``, a module none of whose mutants this run reached
+keeps that file's entry and survivors when the setup, the source and the mutant count are
+unchanged (the tests that scored it are the earlier run's): runs of a few modules at a time
 add up to the whole (``kept`` lists the modules taken from the earlier file).
 
 When the rest of the mutants was sampled (``sample.py``'s ``sample.json``, ``--sample``),
@@ -67,9 +69,11 @@ def _changed_lines(diff: str) -> str:
     return " | ".join(f"{ln[0]} {ln[1:].strip()}" for ln in lines)
 
 
-def _ratio(counts: Counter) -> float:
-    run = sum(n for s, n in counts.items() if s not in NOT_RUN)
-    return sum(counts[s] for s in KILLED) / run if run else float("nan")
+def _killed_ratio(named: dict[str, int], total: int) -> float | None:
+    """Killed and timed-out mutants over those run (:func:`_named` counts of ``total``
+    mutants), to four places; None when none was run."""
+    run = total - named["not_run"]
+    return round((named["killed"] + named["timeout"]) / run, 4) if run else None
 
 
 def _reason(reasons: dict, name: str, change: str) -> str:
@@ -117,18 +121,23 @@ def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = 
     status, _ = _status_and_diffs(set())
     surviving = {k for per in status.values() for k, s in per.items() if s not in KILLED | NOT_RUN}
     status, diffs = _status_and_diffs(surviving)
-    modules, kept, same_setup = {}, [], earlier is not None and earlier.get("setup") == setup()
+    this_setup = setup()
+    same_setup = earlier is not None and earlier.get("setup") == this_setup
     if earlier is not None and not same_setup:
         print("--keep-from: the earlier run had another mutmut or [tool.mutmut] (or recorded neither): "
               "nothing kept", file=sys.stderr)  # fmt: skip
+    modules, kept = {}, []
     for path, per in sorted(status.items()):
-        counts = Counter(per.values())
-        if per:
-            modules[path] = {"total": len(per), "killed_ratio": round(_ratio(counts), 4), **_named(counts),
-                             "sha256": source_hash(path)}  # fmt: skip
-        old = (earlier or {}).get("modules", {}).get(path) if same_setup else None
-        if per and old and all(s in NOT_RUN for s in per.values()) and _same_module(old, path, len(per)):
-            modules[path], _ = old, kept.append(path)
+        if not per:
+            continue
+        old = earlier.get("modules", {}).get(path) if same_setup else None
+        if old and all(s in NOT_RUN for s in per.values()) and _same_module(old, path, len(per)):
+            modules[path] = old
+            kept.append(path)
+            continue
+        named = _named(Counter(per.values()))
+        modules[path] = {"total": len(per), "killed_ratio": _killed_ratio(named, len(per)), **named,
+                         "sha256": source_hash(path)}  # fmt: skip
     survivors = [
         {"mutant": k, "status": s, "change": (c := diffs.get(k, "")), "reason": _reason(reasons, k, c)}
         for path, per in status.items() if path not in kept
@@ -140,11 +149,9 @@ def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = 
     explained = sum(r["reason"] != "unexplained" for r in survivors)
     total = {k: sum(v[k] for v in modules.values()) for k in _named(Counter())}
     n_all = sum(v["total"] for v in modules.values())
-    run = n_all - total["not_run"]
     return {
-        **total, "total": n_all,
-        "killed_ratio": round((total["killed"] + total["timeout"]) / run, 4) if run else None,
-        "run_fraction": round(run / max(1, n_all), 4), "setup": setup(),
+        **total, "total": n_all, "killed_ratio": _killed_ratio(total, n_all),
+        "run_fraction": round((n_all - total["not_run"]) / max(1, n_all), 4), "setup": this_setup,
         "modules_complete": [m for m, v in modules.items() if v["not_run"] == 0],
         "kept": kept,
         "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
@@ -270,7 +277,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
     sample = json.loads(args.sample.read_text()) if args.sample.exists() else None
-    earlier = json.loads(args.keep_from.read_text()) if args.keep_from else None
+    try:
+        earlier = json.loads(args.keep_from.read_text()) if args.keep_from else None
+    except (OSError, ValueError) as exc:
+        print(f"--keep-from {args.keep_from}: cannot read an earlier results.json: {exc}", file=sys.stderr)
+        return 2
     res = summarise(reasons, sample, earlier)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json_text(res, indent=1) + "\n")
