@@ -166,3 +166,38 @@ def test_a_test_that_leaves_a_child_process_does_not_stop_the_run(tmp_path: Path
                    cwd=tmp_path, capture_output=True, timeout=120, check=True)  # fmt: skip
     res = json.loads((out / "results.json").read_text())
     assert res["not_run"] == 0 and res["total"] >= 5 and res["killed"] > 0
+
+
+def test_a_stopped_run_goes_on_and_other_code_starts_afresh(tmp_path: Path) -> None:
+    """``make mutate``'s driver: a run whose mutant lost its result (stopped while it ran) runs
+    only that mutant again and scores as before; changed code starts a fresh run."""
+    _project(tmp_path)
+    out = tmp_path / "out"
+    driver = [sys.executable, SUMMARISE.with_name("mutate_sample.py"), "--max-children", "1", "--fraction",
+              "1", "--first", "pkg.twice*", "--out", out, "--reasons", tmp_path / "none.json"]  # fmt: skip
+
+    def go() -> tuple[str, dict]:
+        run = subprocess.run(driver, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        return run.stdout, json.loads((out / "results.json").read_text())
+
+    said, first = go()
+    assert "a fresh run (no run recorded" in said and first["not_run"] == 0 and first["total"] >= 5
+    assert first["run"]["fraction"] == 1 and len(first["run"]["fingerprint"]) == 64
+    meta = tmp_path / "mutants" / "pkg" / "area.py.meta"
+    doc = json.loads(meta.read_text())
+    stopped = sorted(doc["exit_code_by_key"])[0]
+    doc["exit_code_by_key"][stopped] = None  # as a run stopped while this mutant ran leaves it
+    meta.write_text(json.dumps(doc))
+    said, again = go()
+    drawn = sum(map(len, json.loads((tmp_path / "mutants" / "sample.json").read_text())["sample"].values()))
+    assert f"1 of {drawn} sampled mutants left" in said and drawn >= 3
+    assert json.loads(meta.read_text())["exit_code_by_key"][stopped] is not None
+    assert {k: again[k] for k in ("killed", "survived", "not_run")} == {
+        k: first[k] for k in ("killed", "survived", "not_run")
+    }
+    assert again["run"] == first["run"]
+    (tmp_path / "pkg" / "twice.py").write_text("def twice(x):\n    return x + x\n")
+    said, fresh = go()
+    assert "a fresh run (the code changed since the run began" in said and fresh["not_run"] == 0
+    assert fresh["run"]["fingerprint"] != first["run"]["fingerprint"]

@@ -63,6 +63,20 @@ def draw(
     return out
 
 
+def write_record(
+    path: Path, unrun: dict[str, list[str]], picked: dict[str, list[str]], seed: int, fraction: float,
+    full: list[str],
+) -> None:  # fmt: skip
+    """The draw's record (``sample.json``): its settings, each module's unrun mutants counted
+    (``population``) and the names drawn (``sample``)."""
+    doc = {
+        "seed": seed, "fraction": fraction, "full": list(full),
+        "population": {m: len(v) for m, v in unrun.items() if v},
+        "sample": {m: v for m, v in picked.items() if v},
+    }  # fmt: skip
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fraction", type=float, default=0.1, help="share of each module's unrun mutants")
@@ -75,12 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     unrun = unrun_by_module()
     picked = draw(unrun, args.fraction, args.seed, tuple(args.full))
-    doc = {
-        "seed": args.seed, "fraction": args.fraction, "full": args.full,
-        "population": {m: len(v) for m, v in unrun.items() if v},
-        "sample": {m: v for m, v in picked.items() if v},
-    }  # fmt: skip
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_record(args.out, unrun, picked, args.seed, args.fraction, args.full)
     print("\n".join(n for names in picked.values() for n in names))
     return 0
 

@@ -24,6 +24,9 @@ run count as they are and the module's unrun ones are expected to be killed at t
 its sampled ones (stratified estimate, binomial variance with the finite-population
 correction), with a 95 % interval.
 
+A run made by ``mutate_sample.py`` (``make mutate``, ``make mutate-sample``) adds its record
+``mutants/run.json`` as ``run``: the code's fingerprint, the draw's settings, when it began.
+
 Run from the repository root after ``mutmut run``: ``python docs/results/mutation/summarise.py``.
 """
 
@@ -283,6 +286,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"--keep-from {args.keep_from}: cannot read an earlier results.json: {exc}", file=sys.stderr)
         return 2
     res = summarise(reasons, sample, earlier)
+    run = Path("mutants") / "run.json"  # mutate_sample.py's record of the run: its code and draw
+    if run.is_file():
+        res = {**res, "run": json.loads(run.read_text())}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json_text(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))

@@ -1,0 +1,140 @@
+"""``make mutate-sample`` and ``make mutate``: a mutation run that can stop and go on.
+
+The sampled run takes 3 to 4 hours on 2 cores, the whole run more: longer than a working
+session. mutmut records each mutant's result as it finishes, so a stopped run loses only the
+mutants that were running. Started again on the same code, this script names only the
+sampled mutants that have no result yet; on any other code it starts afresh, so every
+result of one run comes from one code version.
+
+- A fresh run: ``mutants/`` is removed; ``mutmut`` runs the mutants of ``--first`` (the
+  service's limits: it also makes every module's mutants), then ``sample.py`` draws from
+  the mutants not yet run (every one of a ``--full`` module, ``--fraction`` of each other
+  module's; ``--fraction 1`` is the whole run) into ``mutants/sample.json``, and the run's
+  record ``mutants/run.json`` (the code's fingerprint, the draw's settings, when it began)
+  is written.
+- Going on: when ``mutants/run.json`` has this code's fingerprint and the same draw
+  settings, only the sample's mutants without a result are run.
+- Then ``summarise.py`` writes ``results.json`` and ``report.md`` (``--out``), with the run's
+  record.
+
+The fingerprint is the SHA-256 of ``pyproject.toml`` and every Python file under the tests
+and the folders ``[tool.mutmut]`` names (``source_paths``, ``also_copy``): the code the tests
+run, not only the mutated modules (mutmut keeps its first copy of the modules it does not
+mutate).
+
+Run from the repository root: ``python docs/results/mutation/mutate_sample.py
+--max-children 2``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # sample.py and summarise.py, beside this script
+import sample  # noqa: E402
+import summarise  # noqa: E402
+
+#: mutants run first, making every module's mutants before the draw
+FIRST = "estimator_service.service.limits*"
+MUTANTS = Path("mutants")
+RUN = MUTANTS / "run.json"
+SAMPLE = MUTANTS / "sample.json"
+
+
+def code_folders(root: Path = Path(".")) -> list[str]:
+    """The folders whose Python files make a run's code version: the tests and those
+    ``[tool.mutmut]`` names (``source_paths``, ``also_copy``)."""
+    import tomllib
+
+    table = tomllib.loads((root / "pyproject.toml").read_text()).get("tool", {}).get("mutmut", {})
+    return sorted({"tests", *table.get("source_paths", []), *table.get("also_copy", [])})
+
+
+def fingerprint(root: Path = Path(".")) -> str:
+    """SHA-256 over the relative path and bytes of ``pyproject.toml`` and every ``*.py``
+    under :func:`code_folders` (caches left out)."""
+    h = hashlib.sha256()
+    files = [p for d in code_folders(root) for p in (root / d).rglob("*.py") if "__pycache__" not in p.parts]
+    for p in sorted([*files, root / "pyproject.toml"]):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _mutmut(max_children: int, names: list[str]) -> None:
+    """``run_mutmut.py run`` in its own process; stops this script if it fails."""
+    cmd = [sys.executable, str(HERE / "run_mutmut.py"), "run", "--max-children", str(max_children), *names]
+    if subprocess.run(cmd).returncode != 0:
+        raise SystemExit("mutate_sample.py: mutmut failed (see above); run again to go on")
+
+
+def _resumable(record: dict | None, settings: dict) -> str:
+    """Why the run in ``mutants/`` cannot go on (empty: it can)."""
+    if record is None:
+        return "no run recorded in mutants/run.json"
+    if not SAMPLE.is_file():
+        return "the run's sample (mutants/sample.json) is missing"
+    if record.get("fingerprint") != settings["fingerprint"]:
+        return f"the code changed since the run began {record.get('began', '?')}"
+    changed = [k for k in ("fraction", "seed", "full", "first") if record.get(k) != settings[k]]
+    return f"other draw settings ({', '.join(changed)})" if changed else ""
+
+
+def pending(drawn: dict[str, list[str]], unrun: dict[str, list[str]]) -> list[str]:
+    """The drawn mutants (per module) that have no result yet, in module order."""
+    return [n for m, names in sorted(drawn.items()) for n in names if n in set(unrun.get(m, ()))]
+
+
+def start(settings: dict, max_children: int) -> list[str]:
+    """A fresh run: the first mutants, the draw and the run's record; the drawn names."""
+    shutil.rmtree(MUTANTS, ignore_errors=True)
+    _mutmut(max_children, [settings["first"]])
+    unrun = sample.unrun_by_module()
+    drawn = sample.draw(unrun, settings["fraction"], settings["seed"], tuple(settings["full"]))
+    sample.write_record(SAMPLE, unrun, drawn, settings["seed"], settings["fraction"], settings["full"])
+    RUN.write_text(json.dumps({**settings, "began": time.strftime("%Y-%m-%d %H:%M:%S %Z")}, indent=1) + "\n")
+    return [n for names in drawn.values() for n in names]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--max-children", type=int, default=2, help="mutants run at once")
+    ap.add_argument("--fraction", type=float, default=0.1, help="share of other modules' mutants (1: all)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the draw")
+    ap.add_argument("--full", nargs="*", default=list(sample.FULL), help="module globs run completely")
+    ap.add_argument("--first", default=FIRST, help="mutants run before the draw (mutmut's pattern)")
+    ap.add_argument("--out", type=Path, default=HERE, help="folder for results.json and report.md")
+    ap.add_argument("--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons")
+    args = ap.parse_args(argv)
+    if not 0.0 < args.fraction <= 1.0:
+        ap.error(f"--fraction must be in (0, 1], got {args.fraction}")
+    if args.max_children < 1:
+        ap.error(f"--max-children must be at least 1, got {args.max_children}")
+    settings = {"fingerprint": fingerprint(), "fraction": args.fraction, "seed": args.seed,
+                "full": list(args.full), "first": args.first}  # fmt: skip
+    record = json.loads(RUN.read_text()) if RUN.is_file() else None
+    why = _resumable(record, settings)
+    if why:
+        print(f"mutate_sample.py: a fresh run ({why})", flush=True)
+        names = start(settings, args.max_children)
+    else:
+        drawn = json.loads(SAMPLE.read_text())["sample"]
+        names = pending(drawn, sample.unrun_by_module())
+        total = sum(len(v) for v in drawn.values())
+        print(f"mutate_sample.py: going on with the run begun {record['began']}: "
+              f"{len(names)} of {total} sampled mutants left", flush=True)  # fmt: skip
+    if names:
+        _mutmut(args.max_children, names)
+    return summarise.main(["--out", str(args.out), "--reasons", str(args.reasons), "--sample", str(SAMPLE)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
