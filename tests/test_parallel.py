@@ -47,6 +47,24 @@ def test_workers_give_the_serial_results_in_order() -> None:
         assert threads and set(threads) == {1}  # one BLAS thread per worker
 
 
+def _wait_for(path: Path) -> bool:
+    """Whether ``path`` appears within 30 s."""
+    end = time.monotonic() + 30
+    while not path.exists():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_each_unit_ticks_as_it_ends_not_when_all_have(tmp_path: Path) -> None:
+    """The first unit's tick writes the file the second waits for: ticks held back until
+    every unit ended (waiting for the first exception, i.e. for all) leave it waiting."""
+    flag = tmp_path / "ticked"
+    seen = run_all([partial(_write, tmp_path / "first"), partial(_wait_for, flag)], 2, lambda: flag.touch())
+    assert seen == [1, True]
+
+
 def test_a_failing_units_error_reaches_the_caller(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="unit failed"):
         run_all([partial(_fail, tmp_path / "x"), partial(_write, tmp_path / "y")], 2)

@@ -13,7 +13,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import TypeVar
 
 __all__ = ["MAX_JOBS", "check_jobs", "run_all"]
@@ -79,7 +79,7 @@ def run_all(
         futures = [pool.submit(unit) for unit in units]
         pending = set(futures)
         while pending:
-            done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)  # a tick as each ends
             for f in done:
                 if f.exception() is not None:
                     pool.shutdown(wait=True, cancel_futures=True)
