@@ -201,3 +201,22 @@ def test_a_stopped_run_goes_on_and_other_code_starts_afresh(tmp_path: Path) -> N
     said, fresh = go()
     assert "a fresh run (the code changed since the run began" in said and fresh["not_run"] == 0
     assert fresh["run"]["fingerprint"] != first["run"]["fingerprint"]
+    _stopped_before_the_draw(tmp_path, go, fresh)
+
+
+def _stopped_before_the_draw(root: Path, go, done: dict) -> None:
+    """A run stopped while its first mutants ran (one without a result, no draw yet, no
+    other module run): it runs that one, draws, and runs the rest."""
+    (root / "mutants" / "sample.json").unlink()
+    for name, keep_one in (("area.py.meta", False), ("twice.py.meta", True)):
+        meta = root / "mutants" / "pkg" / name
+        doc = json.loads(meta.read_text())
+        keys = sorted(doc["exit_code_by_key"])
+        doc["exit_code_by_key"] |= {k: None for k in (keys[:1] if keep_one else keys)}
+        meta.write_text(json.dumps(doc))
+    said, again = go()
+    area = len(json.loads((root / "mutants" / "pkg" / "area.py.meta").read_text())["exit_code_by_key"])
+    assert "a fresh run" not in said and f"{area} of {area} sampled mutants left" in said
+    assert {k: again[k] for k in ("killed", "survived", "not_run", "total")} == {
+        k: done[k] for k in ("killed", "survived", "not_run", "total")
+    }

@@ -2,25 +2,27 @@
 
 The sampled run takes 3 to 4 hours on 2 cores, the whole run more: longer than a working
 session. mutmut records each mutant's result as it finishes, so a stopped run loses only the
-mutants that were running. Started again on the same code, this script names only the
-sampled mutants that have no result yet; on any other code it starts afresh, so every
-result of one run comes from one code version.
+mutants that were running. Started again on the same code with the same draw settings, this
+script runs only the mutants that have no result yet; otherwise it starts afresh (removing
+``mutants/``), so every result of one run comes from one code version.
 
-- A fresh run: ``mutants/`` is removed; ``mutmut`` runs the mutants of ``--first`` (the
-  service's limits: it also makes every module's mutants), then ``sample.py`` draws from
-  the mutants not yet run (every one of a ``--full`` module, ``--fraction`` of each other
-  module's; ``--fraction 1`` is the whole run) into ``mutants/sample.json``, and the run's
-  record ``mutants/run.json`` (the code's fingerprint, the draw's settings, when it began)
-  is written.
-- Going on: when ``mutants/run.json`` has this code's fingerprint and the same draw
-  settings, only the sample's mutants without a result are run.
+- A fresh run: ``mutants/`` is removed and the run's record ``mutants/run.json`` (the code's
+  fingerprint, the draw's settings, when it began) is written; ``mutmut`` runs the mutants
+  of ``--first`` (the service's limits: it also makes every module's mutants); then
+  ``sample.py`` draws from the mutants not yet run (every one of a ``--full`` module,
+  ``--fraction`` of each other module's; ``--fraction 1`` is the whole run) into
+  ``mutants/sample.json``.
+- Going on: the first mutants still without a result, the draw if it was not made, then the
+  drawn mutants still without a result.
 - Then ``summarise.py`` writes ``results.json`` and ``report.md`` (``--out``), with the run's
-  record.
+  record, and the draw is copied beside them as ``sample.json``. Mutants still without a
+  result (mutmut stopped early) are named and the exit status is 1.
 
-The fingerprint is the SHA-256 of ``pyproject.toml`` and every Python file under the tests
-and the folders ``[tool.mutmut]`` names (``source_paths``, ``also_copy``): the code the tests
-run, not only the mutated modules (mutmut keeps its first copy of the modules it does not
-mutate).
+The fingerprint is the SHA-256 of ``pyproject.toml``, ``constraints.txt``, the Python and
+mutmut versions and every Python file under the tests and the folders ``[tool.mutmut]``
+names (``source_paths``, ``also_copy``), except this folder's tools, which read the results
+and do not run the code under test: the code the tests run, not only the mutated modules
+(mutmut keeps its first copy of the modules it does not mutate).
 
 Run from the repository root: ``python docs/results/mutation/mutate_sample.py
 --max-children 2``.
@@ -29,12 +31,15 @@ Run from the repository root: ``python docs/results/mutation/mutate_sample.py
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import hashlib
 import json
+import platform
 import shutil
 import subprocess
 import sys
 import time
+from importlib.metadata import version
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -47,6 +52,7 @@ FIRST = "estimator_service.service.limits*"
 MUTANTS = Path("mutants")
 RUN = MUTANTS / "run.json"
 SAMPLE = MUTANTS / "sample.json"
+DRAW_KEYS = ("fraction", "seed", "full", "first")
 
 
 def code_folders(root: Path = Path(".")) -> list[str]:
@@ -59,11 +65,16 @@ def code_folders(root: Path = Path(".")) -> list[str]:
 
 
 def fingerprint(root: Path = Path(".")) -> str:
-    """SHA-256 over the relative path and bytes of ``pyproject.toml`` and every ``*.py``
-    under :func:`code_folders` (caches left out)."""
-    h = hashlib.sha256()
-    files = [p for d in code_folders(root) for p in (root / d).rglob("*.py") if "__pycache__" not in p.parts]
-    for p in sorted([*files, root / "pyproject.toml"]):
+    """SHA-256 over the Python and mutmut versions and the relative path and bytes of
+    ``pyproject.toml``, ``constraints.txt`` and every ``*.py`` under :func:`code_folders`
+    (caches and this folder's tools left out)."""
+    root = root.resolve()
+    h = hashlib.sha256(f"python {platform.python_version()} mutmut {version('mutmut')}\0".encode())
+    files = [
+        p for d in code_folders(root) for p in (root / d).rglob("*.py")
+        if "__pycache__" not in p.parts and HERE not in p.resolve().parents
+    ]  # fmt: skip
+    for p in sorted([*files, root / "pyproject.toml", root / "constraints.txt"]):
         if p.is_file():
             h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
     return h.hexdigest()
@@ -73,18 +84,16 @@ def _mutmut(max_children: int, names: list[str]) -> None:
     """``run_mutmut.py run`` in its own process; stops this script if it fails."""
     cmd = [sys.executable, str(HERE / "run_mutmut.py"), "run", "--max-children", str(max_children), *names]
     if subprocess.run(cmd).returncode != 0:
-        raise SystemExit("mutate_sample.py: mutmut failed (see above); run again to go on")
+        raise SystemExit("mutate_sample.py: mutmut failed (see above); the results so far are kept")
 
 
 def _resumable(record: dict | None, settings: dict) -> str:
     """Why the run in ``mutants/`` cannot go on (empty: it can)."""
     if record is None:
         return "no run recorded in mutants/run.json"
-    if not SAMPLE.is_file():
-        return "the run's sample (mutants/sample.json) is missing"
     if record.get("fingerprint") != settings["fingerprint"]:
         return f"the code changed since the run began {record.get('began', '?')}"
-    changed = [k for k in ("fraction", "seed", "full", "first") if record.get(k) != settings[k]]
+    changed = [k for k in DRAW_KEYS if record.get(k) != settings[k]]
     return f"other draw settings ({', '.join(changed)})" if changed else ""
 
 
@@ -93,18 +102,28 @@ def pending(drawn: dict[str, list[str]], unrun: dict[str, list[str]]) -> list[st
     return [n for m, names in sorted(drawn.items()) for n in names if n in set(unrun.get(m, ()))]
 
 
-def start(settings: dict, max_children: int) -> list[str]:
-    """A fresh run: the first mutants, the draw and the run's record; the drawn names."""
-    shutil.rmtree(MUTANTS, ignore_errors=True)
-    _mutmut(max_children, [settings["first"]])
+def _unrun() -> dict[str, list[str]]:
+    """Per module, its mutants without a result; none before mutmut has made them."""
+    return sample.unrun_by_module() if any(MUTANTS.rglob("*.meta")) else {}
+
+
+def _first_left(pattern: str) -> list[str]:
+    """The ``--first`` mutants still to run: all (the pattern) before mutmut made them."""
+    unrun = _unrun()
+    if not unrun:
+        return [pattern]
+    return [n for names in unrun.values() for n in names if fnmatch.fnmatch(n, pattern)]
+
+
+def _draw(settings: dict) -> dict[str, list[str]]:
+    """The draw among the mutants not run, recorded in ``mutants/sample.json``."""
     unrun = sample.unrun_by_module()
     drawn = sample.draw(unrun, settings["fraction"], settings["seed"], tuple(settings["full"]))
     sample.write_record(SAMPLE, unrun, drawn, settings["seed"], settings["fraction"], settings["full"])
-    RUN.write_text(json.dumps({**settings, "began": time.strftime("%Y-%m-%d %H:%M:%S %Z")}, indent=1) + "\n")
-    return [n for names in drawn.values() for n in names]
+    return drawn
 
 
-def main(argv: list[str] | None = None) -> int:
+def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-children", type=int, default=2, help="mutants run at once")
     ap.add_argument("--fraction", type=float, default=0.1, help="share of other modules' mutants (1: all)")
@@ -118,22 +137,47 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--fraction must be in (0, 1], got {args.fraction}")
     if args.max_children < 1:
         ap.error(f"--max-children must be at least 1, got {args.max_children}")
+    if args.seed < 0:
+        ap.error(f"--seed must be at least 0, got {args.seed}")
+    if not args.first.strip():
+        ap.error("--first must name mutants (a mutmut pattern such as 'pkg.module*')")
     settings = {"fingerprint": fingerprint(), "fraction": args.fraction, "seed": args.seed,
                 "full": list(args.full), "first": args.first}  # fmt: skip
+    return args, settings
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, settings = _settings(argv)
     record = json.loads(RUN.read_text()) if RUN.is_file() else None
     why = _resumable(record, settings)
     if why:
-        print(f"mutate_sample.py: a fresh run ({why})", flush=True)
-        names = start(settings, args.max_children)
+        print(f"mutate_sample.py: a fresh run ({why}; mutants/ removed)", flush=True)
+        shutil.rmtree(MUTANTS, ignore_errors=True)
+        MUTANTS.mkdir()
+        record = {**settings, "began": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+        RUN.write_text(json.dumps(record, indent=1) + "\n")
+    if not SAMPLE.is_file():
+        first = _first_left(args.first)
+        if first:
+            _mutmut(args.max_children, first)
+        drawn = _draw(settings)
     else:
         drawn = json.loads(SAMPLE.read_text())["sample"]
-        names = pending(drawn, sample.unrun_by_module())
-        total = sum(len(v) for v in drawn.values())
-        print(f"mutate_sample.py: going on with the run begun {record['began']}: "
-              f"{len(names)} of {total} sampled mutants left", flush=True)  # fmt: skip
+    names = pending(drawn, sample.unrun_by_module())
+    total = sum(len(v) for v in drawn.values())
+    print(f"mutate_sample.py: the run begun {record['began']}: {len(names)} of {total} sampled mutants "
+          "left", flush=True)  # fmt: skip
     if names:
         _mutmut(args.max_children, names)
-    return summarise.main(["--out", str(args.out), "--reasons", str(args.reasons), "--sample", str(SAMPLE)])
+    status = summarise.main(["--out", str(args.out), "--reasons", str(args.reasons), "--sample", str(SAMPLE)])
+    if args.out.resolve() != SAMPLE.parent.resolve():
+        shutil.copyfile(SAMPLE, args.out / "sample.json")  # the draw beside the results it gave
+    left = pending(drawn, sample.unrun_by_module()) + _first_left(args.first)
+    if left:
+        print(f"mutate_sample.py: {len(left)} mutants still without a result (mutmut stopped early?): "
+              "run again to go on", file=sys.stderr)  # fmt: skip
+        return 1
+    return status
 
 
 if __name__ == "__main__":

@@ -253,6 +253,8 @@ def _estimate_lines(est: dict | None) -> list[str]:
         return []
     if est["killed_ratio"] is None:
         return ["", f"No estimate over all mutants: {est['why']}."]
+    if (est.get("fraction") or 0) >= 1:  # every mutant was drawn: the ratio above is the whole
+        return []
     lo, hi = est["ci95"]
     return [
         "",
