@@ -521,7 +521,9 @@ def _why(failed: list[str]) -> list[str]:
     caveat = (
         "These causes were measured in the world before the reality presets (textbook physics, "
         "exact-state truth, `docs/results/reproduce_full`); in the `lab` world, whose parametric "
-        "model no longer has the simulator's structure, they have not been measured again."
+        "model no longer has the simulator's structure, they have not been measured again. Every "
+        "figure below comes from those runs (`reproduce_full`, `reproduce_full_seed1`), not from this "
+        "report's."
     )
     return ["### Where our numbers differ, and why", "", caveat, "", *[f"- {t}" for t in notes], ""]
 
