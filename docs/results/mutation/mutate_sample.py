@@ -49,8 +49,7 @@ import summarise  # noqa: E402
 
 #: mutants run first, making every module's mutants before the draw
 FIRST = "estimator_service.service.limits*"
-MUTANTS = Path("mutants")
-RUN = MUTANTS / "run.json"
+MUTANTS, RUN = summarise.MUTANTS, summarise.RUN_RECORD
 SAMPLE = MUTANTS / "sample.json"
 DRAW_KEYS = ("fraction", "seed", "full", "first")
 

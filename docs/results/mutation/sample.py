@@ -27,7 +27,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # summarise.py, beside this script: the one list of mutmut's statuses
-from summarise import NOT_RUN  # noqa: E402
+from summarise import MUTANTS, NOT_RUN  # noqa: E402
 
 SAMPLE = HERE / "sample.json"
 FULL = ("estimator_service/filters/*", "estimator_service/service/limits.py")
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--full", nargs="*", default=list(FULL), help="module globs run completely")
     ap.add_argument("--out", type=Path, default=SAMPLE, help="where the sample is recorded")
     args = ap.parse_args(argv)
-    if not Path("mutants").is_dir():
+    if not MUTANTS.is_dir():
         print("no mutants/ folder here: run `mutmut run` from the repository root first", file=sys.stderr)
         return 2
     unrun = unrun_by_module()

@@ -45,6 +45,10 @@ from estimator_service.files import json_text
 HERE = Path(__file__).resolve().parent
 KILLED = {"killed", "timeout", "segfault", "caught by type check"}
 NOT_RUN = {"skipped", "not checked", "check was interrupted by user"}
+#: mutmut's working folder (relative to the repository root) and the record of a run in it
+#: (``mutate_sample.py``: the code's fingerprint, the draw's settings, when it began)
+MUTANTS = Path("mutants")
+RUN_RECORD = MUTANTS / "run.json"
 
 
 def _status_and_diffs(names: set[str]) -> tuple[dict[str, dict[str, str]], dict[str, str]]:
@@ -277,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         "--keep-from", type=Path, help="an earlier results.json: its unchanged modules this run did not reach"
     )
     args = ap.parse_args(argv)
-    if not Path("mutants").is_dir():
+    if not MUTANTS.is_dir():
         print("no mutants/ folder here: run `make mutate` from the repository root", file=sys.stderr)
         return 2
     reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
@@ -288,9 +292,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"--keep-from {args.keep_from}: cannot read an earlier results.json: {exc}", file=sys.stderr)
         return 2
     res = summarise(reasons, sample, earlier)
-    run = Path("mutants") / "run.json"  # mutate_sample.py's record of the run: its code and draw
-    if run.is_file():
-        res = {**res, "run": json.loads(run.read_text())}
+    if RUN_RECORD.is_file():
+        res = {**res, "run": json.loads(RUN_RECORD.read_text())}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json_text(res, indent=1) + "\n")
     (args.out / "report.md").write_text(report(res))
