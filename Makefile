@@ -33,8 +33,8 @@ bench: $(STAMP)
 mutate: $(STAMP)
 	$(VENV)/bin/python docs/results/mutation/mutate_sample.py --max-children $$(nproc) --fraction 1
 
-# The same in fewer hours (3 to 4 on 2 cores: on 2026-12-05 1,764 mutants took 43 min, the
-# slowest 800 ran at 5 a minute): the filters and the service's limits completely, a seeded
+# The same in less time (on 2026-12-05: 2,540 mutants in 87 min on 2 cores, most of it
+# mutants stopped by mutmut's CPU-time limit): the filters and the service's limits completely, a seeded
 # random tenth of every other module's mutants (sample.py), and the killed ratio over all
 # mutants estimated from it with its 95 % interval (summarise.py).
 mutate-sample: $(STAMP)

@@ -1,7 +1,8 @@
 """``make mutate-sample`` and ``make mutate``: a mutation run that can stop and go on.
 
-The sampled run takes 3 to 4 hours on 2 cores, the whole run more: longer than a working
-session. mutmut records each mutant's result as it finishes, so a stopped run loses only the
+The sampled run took 87 minutes on 2 cores (2026-12-05: 2,540 mutants, timeouts most of the
+time), the whole run hours more: longer than a working session. mutmut records each
+mutant's result as it finishes, so a stopped run loses only the
 mutants that were running. Started again on the same code with the same draw settings, this
 script runs only the mutants that have no result yet; otherwise it starts afresh (removing
 ``mutants/``), so every result of one run comes from one code version.
@@ -98,7 +99,8 @@ def _resumable(record: dict | None, settings: dict) -> str:
 
 def pending(drawn: dict[str, list[str]], unrun: dict[str, list[str]]) -> list[str]:
     """The drawn mutants (per module) that have no result yet, in module order."""
-    return [n for m, names in sorted(drawn.items()) for n in names if n in set(unrun.get(m, ()))]
+    left = {m: set(names) for m, names in unrun.items()}
+    return [n for m, names in sorted(drawn.items()) for n in names if n in left.get(m, ())]
 
 
 def _unrun() -> dict[str, list[str]]:
@@ -147,7 +149,10 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
 
 def main(argv: list[str] | None = None) -> int:
     args, settings = _settings(argv)
-    record = json.loads(RUN.read_text()) if RUN.is_file() else None
+    try:
+        record = json.loads(RUN.read_text()) if RUN.is_file() else None
+    except ValueError:  # a record cut short: nothing to go on from
+        record = None
     why = _resumable(record, settings)
     if why:
         print(f"mutate_sample.py: a fresh run ({why}; mutants/ removed)", flush=True)
