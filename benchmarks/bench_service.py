@@ -20,7 +20,11 @@ model folder; ``gpbf serve`` runs as a separate process.
    for the sparse GP (``blimps_at_4hz``) and the exact GP, and for the sparse GP served by
    a fleet of two processes on this machine (``fleet_blimps_at_4hz``).
 3. ``overhead_over_zenoh_floor``: the GP-EKF lock-step overhead over the bare zenoh echo
-   measured in the same run (target <= 2).
+   measured in the same run. ``service_cpu_per_step_over_echo`` (target <= 2): the CPU
+   time, all threads, the service process spends per step message with 50 sparse-GP blimps
+   at 4 Hz (``service_cpu_per_step_ms``; its filter step alone in-process:
+   ``sparse_inprocess_step_ms``), over what the bare zenoh echo's process spends per message
+   under the same load (``echo_cpu_per_step_ms``).
 4. A hostile peer (``service_attacks.py``): forged fleet tokens (``forged_token_sessions_lost``,
    ``forged_token_resets_ok``), a hung owner (``hung_owner_failover_s``,
    ``stale_owner_overrides``), near-horizon frame chains against EKF and PF blimps
@@ -49,6 +53,7 @@ import service_tools
 from machine import limits
 from service_tools import (
     WARM_UP,
+    cpu_seconds,
     echo_floor,
     echo_session,
     factor_mb,
@@ -145,23 +150,47 @@ def load(session, keys_: list[str], payload, seconds: float) -> tuple[float, flo
     return (float(np.percentile(np.array(lat) * 1e3, 99)) if ok else float("inf")), lag
 
 
-def capacity_run(session, n_blimps: int, seconds: float, tag: str) -> tuple[float, float]:
-    """p99 latency (ms) and sender lag (s) of ``n_blimps`` each stepping at 4 Hz."""
+def _step_payload(tick: int) -> bytes:
+    """One blimp's step message at ``tick`` (a control and one camera's ellipse)."""
+    return encode({
+        "v": PROTOCOL_VERSION, "seq": tick + 1, "t": 0.25 * (tick + 1), "u": [0.1, 0.0, 0.0],
+        "frames": [[0, [300.0, 200.0, 60.0, 30.0, 0.1]]],
+    })  # fmt: skip
+
+
+def capacity_run(
+    session, n_blimps: int, seconds: float, tag: str, pid: int | None = None
+) -> tuple[float, float]:
+    """p99 latency (ms) and sender lag (s) of ``n_blimps`` each stepping at 4 Hz; with
+    ``pid``, the CPU milliseconds that process spent per step message instead of the lag."""
     rng = np.random.default_rng(2)
     clients = [EstimatorClient(session, f"{tag}-{n_blimps}-{i}") for i in range(n_blimps)]
     for c in clients:
         c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0)
-
-    def step(tick: int) -> bytes:
-        return encode({
-            "v": PROTOCOL_VERSION, "seq": tick + 1, "t": 0.25 * (tick + 1), "u": [0.1, 0.0, 0.0],
-            "frames": [[0, [300.0, 200.0, 60.0, 30.0, 0.1]]],
-        })  # fmt: skip
-
-    out = load(session, [keys.blimp_key(c.blimp, "step") for c in clients], step, seconds)
+    cpu0 = cpu_seconds(pid) if pid is not None else 0.0
+    p99, lag = load(session, [keys.blimp_key(c.blimp, "step") for c in clients], _step_payload, seconds)
+    cpu = (cpu_seconds(pid) - cpu0) if pid is not None else 0.0
     for c in clients:
         c.close()
-    return out
+    return (p99, cpu / (n_blimps * int(seconds / 0.25)) * 1e3) if pid is not None else (p99, lag)
+
+
+def cpu_per_step(models: Path, model: str, n_blimps: int, seconds: float) -> tuple[float, float]:
+    """CPU milliseconds per step message, all threads of the receiving process, with
+    ``n_blimps`` at 4 Hz: ``gpbf serve`` stepping ``model`` GP-EKF blimps, and the bare zenoh
+    echo (``zenoh_echo.py``, no work) receiving the same messages. Each after one uncounted
+    second of the same load."""
+    pids: list[int] = []
+    with service_session(models, model, pids=pids) as session:
+        capacity_run(session, n_blimps, 1.0, "cpu-warm")
+        served = capacity_run(session, n_blimps, seconds, "cpu", pid=pids[-1])[1]
+    with echo_session(0.0, pids=pids) as session:
+        echo_keys = [f"echo/cpu{i}" for i in range(n_blimps)]
+        load(session, echo_keys, _step_payload, 1.0)
+        cpu0 = cpu_seconds(pids[-1])
+        load(session, echo_keys, _step_payload, seconds)
+        echoed = (cpu_seconds(pids[-1]) - cpu0) / (n_blimps * int(seconds / 0.25)) * 1e3
+    return served, echoed
 
 
 def ladder(run, levels: list[int], label: str) -> int:
@@ -239,6 +268,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             # GP's 68 MB of Cholesky factors evicting the transport's code and data from the caches
             rtt, loc, served = round_trips(session, models, "ekf", n_rtt, model="sparse")
             res["sparse_overhead_p50_ms"] = np.median(rtt) - np.median(loc)
+            res["sparse_inprocess_p50_ms"] = np.median(loc)
             res["sparse_transport_p50_ms"] = np.median(rtt - served)
             print(
                 f"sparse GP-EKF: round trip p50 {np.median(rtt):.3f} ms, in-process {np.median(loc):.3f} ms; "
@@ -246,6 +276,10 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             )
         legs = phases(models, n_rtt)
         print("GP-EKF round trip by leg (p50 ms): " + ", ".join(f"{k} {v:.3f}" for k, v in legs.items()))
+        cpu_blimps = levels[min(1, len(levels) - 1)]  # 50 blimps (25 in the smoke run): both keep up
+        service_cpu, echo_cpu = cpu_per_step(models, "sparse", cpu_blimps, seconds)
+        print(f"CPU per step message, {cpu_blimps} blimps at 4 Hz: service (sparse GP-EKF) "
+              f"{service_cpu:.3f} ms, bare zenoh echo {echo_cpu:.3f} ms")  # fmt: skip
         best_echo = echo_capacity(levels, seconds)
         best_sparse = capacity(models, "sparse", levels, seconds)
         best_exact = capacity(models, "gp", [n for n in levels if n <= 100], seconds)
@@ -279,6 +313,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "echo_blimps_at_4hz": best_echo,
         "blimps_over_echo": round(best_sparse / best_echo, 3) if best_echo else None,
         "overhead_over_zenoh_floor": round(res["ekf_overhead_p50_ms"] / res["ekf_zenoh_floor_ms"], 3),
+        "cpu_blimps_at_4hz": cpu_blimps,
+        "service_cpu_per_step_ms": round(service_cpu, 4),
+        "echo_cpu_per_step_ms": round(echo_cpu, 4),
+        "sparse_inprocess_step_ms": round(res["sparse_inprocess_p50_ms"], 4),
+        "service_cpu_per_step_over_echo": round(service_cpu / echo_cpu, 3) if echo_cpu > 0 else None,
         **attacks,
     }
     out.update(limits())  # this machine's dgemm rate and read bandwidth, for the ratios

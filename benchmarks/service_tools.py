@@ -4,6 +4,7 @@ the bare zenoh floors it is compared with."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -21,13 +22,18 @@ SERVE_ARGS: list[str] = []  # extra ``gpbf serve`` options for every service sta
 
 
 @contextmanager
-def service_session(models: Path, model: str, trace: Path | None = None) -> Iterator[Any]:
+def service_session(
+    models: Path, model: str, trace: Path | None = None, pids: list[int] | None = None
+) -> Iterator[Any]:
     """A zenoh session connected to ``gpbf serve`` (in another process, serving ``model``;
-    with ``trace``, the timestamped one of service_trace.py); both closed on exit."""
+    with ``trace``, the timestamped one of service_trace.py); both closed on exit. The
+    service's process id is appended to ``pids`` when given."""
     tracer = (sys.executable, str(Path(__file__).with_name("service_trace.py")), str(trace))
     kw = {} if trace is None else {"command": tracer}
     port = free_port()
     proc, _ = spawn_service(models, port, "--model", model, *SERVE_ARGS, merge_stderr=False, **kw)
+    if pids is not None:
+        pids.append(proc.pid)
     session = open_session([f"tcp/127.0.0.1:{port}"])
     try:
         time.sleep(0.3)
@@ -111,8 +117,9 @@ def factor_mb(models: Path, kind: str = "gp") -> float:
 
 
 @contextmanager
-def echo_session(work_s: float, stream_mb: float = 0.0) -> Iterator[Any]:
-    """A zenoh session connected to a bare queryable (``zenoh_echo.py``) in another process."""
+def echo_session(work_s: float, stream_mb: float = 0.0, pids: list[int] | None = None) -> Iterator[Any]:
+    """A zenoh session connected to a bare queryable (``zenoh_echo.py``) in another process
+    (its process id appended to ``pids`` when given)."""
     port = free_port()
     echo = Path(__file__).with_name("zenoh_echo.py")
     proc = subprocess.Popen(
@@ -120,6 +127,8 @@ def echo_session(work_s: float, stream_mb: float = 0.0) -> Iterator[Any]:
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     assert "ready" in proc.stdout.readline()
+    if pids is not None:
+        pids.append(proc.pid)
     session = open_session([f"tcp/127.0.0.1:{port}"])
     time.sleep(0.3)
     try:
@@ -128,6 +137,13 @@ def echo_session(work_s: float, stream_mb: float = 0.0) -> Iterator[Any]:
         session.close()
         proc.stdin.close()
         proc.wait(timeout=20)
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU seconds (user + system, all threads) process ``pid`` has used, from Linux's
+    ``/proc/<pid>/stat`` (clock-tick resolution)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:

@@ -160,6 +160,12 @@ def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = Fa
     )  # fmt: skip
     p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")
     p.add_argument(
+        "--pf-update", choices=("table1", "bridge"), default=None,
+        help="PF: weight by the likelihood as the paper's Table 1, or bridge to an ensemble Kalman move "
+        "when a reading is too sharp for the particles (default: bridge for learned models, table1 for "
+        "param)",
+    )  # fmt: skip
+    p.add_argument(
         "--adapt", type=checked_float(0.0, 1.0), default=None, metavar="RATE",
         help=f"EKF/UKF: inflate the process noise while NIS/dof stays above its calibrated level at this "
         f"rate (0: off; default {ADAPT_RATE}, or off where the models' calibration chose the plain filter)",
@@ -181,5 +187,6 @@ def model_kind(args: argparse.Namespace) -> str:
 def filter_options(args: argparse.Namespace) -> dict[str, object]:
     """The filter's own options from :func:`add_filter_options`' arguments."""
     if args.filter == "pf":
-        return {"n_particles": args.particles}
+        rule = {} if args.pf_update is None else {"update_rule": args.pf_update}
+        return {"n_particles": args.particles, **rule}
     return {} if args.adapt is None else {"adapt_rate": args.adapt}

@@ -19,7 +19,8 @@ EXPECTED = {
     },
     "bench_service.py": {
         "rtt_p50_ms", "rtt_p99_ms", "overhead_p50_ms", "blimps_at_4hz", "fleet_blimps_at_4hz",
-        "overhead_over_zenoh_floor", "forged_token_sessions_lost", "forged_token_resets_ok",
+        "overhead_over_zenoh_floor", "service_cpu_per_step_over_echo", "forged_token_sessions_lost",
+        "forged_token_resets_ok",
         "hung_owner_failover_s", "stale_owner_overrides", "near_horizon_healthy_p99_ms", "queue_bytes_max_mb",
     },
     "bench_filters.py": {
@@ -93,3 +94,22 @@ def test_the_real_robot_experiment_runs_quick_and_reports(tmp_path: Path) -> Non
     assert set(result["calibration"]) == {"param", "egp"}
     report = (tmp_path / "report.md").read_text()
     assert all(f"`{k}`" in report for k in judged) and "textbook ekf" in report
+
+
+def test_the_pf_update_experiment_runs_quick_and_summarises(tmp_path: Path) -> None:
+    """docs/results/pf_update/experiment.py --quick: models train, both update rules track
+    every segment, and the last line holds each kind's comparison."""
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "results" / "pf_update" / "experiment.py"), "--quick",
+         "--seed", "5", "--kinds", "param,gp", "--folds", "0", "--out", str(tmp_path)],
+        check=True, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    last = json.loads(out.stdout.strip().splitlines()[-1])
+    assert set(last["summary"]) == {"param", "gp"}
+    for per in last["summary"].values():
+        assert per["table1"]["runs"] == per["bridge"]["runs"] > 0
+        assert math.isfinite(per["bridge_rms_ratio"]) and math.isfinite(per["bridge_mll_gain"])
+    rows = json.loads((tmp_path / "rows.json").read_text())
+    assert {r["rule"] for r in rows} == {"table1", "bridge"} and len(rows) == 2 * sum(
+        p["table1"]["runs"] for p in last["summary"].values()
+    )

@@ -325,9 +325,11 @@ def test_scaled_observation_scales_each_output_variance() -> None:
     np.testing.assert_array_equal(b.jac, a.jac)
     np.testing.assert_allclose(b.var, a.var * [2.0, 5.0])
     assert scaled.obs_dim == 2 and scaled.state_dim == 2
-    for bad in (np.array([1.0]), np.array([1.0, -1.0]), np.array([1.0, np.nan])):
+    for bad in (np.array([1.0]), np.array([1.0, -1.0]), np.array([1.0, np.nan]), np.array([1.0, 0.0])):
         with pytest.raises(ValueError, match="observation noise scale"):
             NoiseScaledObservation(base, bad)
+    listed = NoiseScaledObservation(base, [2, 5])  # any sequence, stored as floats
+    assert isinstance(listed.scale, np.ndarray) and listed.scale.dtype == np.float64
 
 
 def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path: Path) -> None:

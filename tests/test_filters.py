@@ -36,11 +36,11 @@ OBS = LinearGaussianObservation(H, R)
 PRIOR = GaussianBelief(np.array([0.5, -0.2, 0.1, 0.0]), np.diag([0.3, 0.3, 0.1, 0.1]))
 
 
-def kalman(mean, cov, u, z, valid):
+def kalman(mean, cov, u, z, valid, noise=R):
     mean, cov = A @ mean + B @ u, A @ cov @ A.T + np.diag(Q)
     idx = np.flatnonzero(valid)
     if idx.size:
-        h, r = H[idx], np.diag(R[idx])
+        h, r = H[idx], np.diag(noise[idx])
         s = h @ cov @ h.T + r
         k = cov @ h.T @ np.linalg.inv(s)
         mean = mean + k @ (z[idx] - h @ mean)
@@ -360,6 +360,66 @@ def test_systematic_resampling_counts_follow_weights() -> None:
 def test_particle_belief_ess() -> None:
     b = ParticleBelief(np.zeros((4, 1)), np.log(np.array([0.25, 0.25, 0.25, 0.25])))
     assert b.ess == pytest.approx(4.0)
+
+
+def _sharp_run(rule: str, noise: np.ndarray, steps: int = 12):
+    """A PF with ``update_rule`` against the closed-form Kalman filter on readings of noise
+    variance ``noise``: the last belief as a Gaussian, the Kalman mean and covariance, the
+    last step's report and the mean NEES of the truth over the run."""
+    pf = PF(PRED, LinearGaussianObservation(H, noise), n_particles=2000, roughen=1.0,
+            roughen_cov="kalman", update_rule=rule)  # fmt: skip
+    rng, truth = np.random.default_rng(7), np.random.default_rng(8)
+    belief, mean, cov, x, nees = pf.initial(PRIOR, rng), PRIOR.mean, PRIOR.cov, PRIOR.mean.copy(), []
+    for _ in range(steps):
+        u = truth.normal(size=2)
+        x = A @ x + B @ u + truth.normal(size=4) * np.sqrt(Q)
+        z, valid = H @ x + truth.normal(size=3) * np.sqrt(noise), np.ones(3, bool)
+        belief, info = pf.step(belief, u, z, valid, rng)
+        mean, cov = kalman(mean, cov, u, z, valid, noise)
+        g = pf.gaussian(belief)
+        nees.append((g.mean - x) @ np.linalg.solve(g.cov, g.mean - x))
+    return pf.gaussian(belief), mean, cov, info, float(np.mean(nees))
+
+
+def test_the_bridged_update_follows_the_kalman_filter_where_the_likelihood_is_too_sharp() -> None:
+    """Readings 300 times sharper than the test's (sd 1 mm against a 0.55 m prior): the
+    likelihood's update (Table 1) leaves about one particle and loses the state; the
+    ensemble Kalman particle update (Frei & Kuensch 2013) keeps half the sample and the
+    closed-form posterior, consistent (mean NEES near n = 4)."""
+    sharp = np.full(3, 1e-6)
+    g, mean, cov, info, nees = _sharp_run("bridge", sharp)
+    assert info.ess >= 0.5 * 2000 and info.resampled
+    se = np.sqrt(np.diag(cov) / info.ess)
+    assert np.all(np.abs(g.mean - mean) < 5 * se)
+    np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.3)
+    assert 2.0 < nees < 8.0
+    plain = _sharp_run("table1", sharp)
+    assert plain[3].ess < 5 and plain[4] > 100  # what the bridge mends
+
+
+def test_the_bridged_update_is_table1_while_the_weights_keep_half_the_sample() -> None:
+    """Readings the cloud can absorb (the test's own noise) never call the bridge: the same
+    particles, draw for draw, as the likelihood's update."""
+    runs = [_sharp_run(rule, R * 1e3, steps=5) for rule in ("table1", "bridge")]
+    assert runs[0][3].ess > 0.5 * 2000 and not runs[0][3].resampled
+    np.testing.assert_array_equal(runs[0][0].mean, runs[1][0].mean)
+    np.testing.assert_array_equal(runs[0][0].cov, runs[1][0].cov)
+    with pytest.raises(ValueError, match="update_rule"):
+        PF(PRED, OBS, update_rule="enkf")
+
+
+def test_the_factory_picks_the_pf_update_by_model_kind_unless_told() -> None:
+    from estimator_service.factory import MODEL_KINDS, PF_UPDATE_RULES, make_filter
+
+    assert set(PF_UPDATE_RULES) == set(MODEL_KINDS)
+    rules = {k: make_filter("pf", PRED, OBS, model_kind=k).update_rule for k in MODEL_KINDS}
+    assert rules == {"param": "table1", **dict.fromkeys(("gp", "egp", "hetgp", "sparse"), "bridge")}
+    assert make_filter("pf", PRED, OBS).update_rule == "table1"  # models of no kind: the paper's
+    assert make_filter("pf", PRED, OBS, model_kind="gp", update_rule="table1").update_rule == "table1"
+    pf = make_filter("pf", PRED, OBS, model_kind="gp")
+    assert (pf.roughen, pf.roughen_cov) == (1.0, "kalman")
+    with pytest.raises(ValueError, match="model_kind"):
+        make_filter("pf", PRED, OBS, model_kind="gpr")
 
 
 def test_regularised_resampling_keeps_the_cloud_diverse_and_consistent() -> None:

@@ -351,6 +351,8 @@ def test_training_reports_progress_per_output_through_callback(toy) -> None:
     seen.clear()
     fit_sparse(x[:30], y[:30], n_pseudo=5, max_iter=3, callback=seen.append)
     assert {s.output for s in seen} == {0, 1} and {s.model for s in seen} == {"sparse"}
+    smallest = fit_sparse(x[:3], y[:3], n_pseudo=3, max_iter=2)  # as few points as pseudo-inputs
+    assert np.all(np.isfinite(smallest.predict(x[:5]).mean))
 
 
 def test_exact_and_heteroscedastic_fits_draw_from_the_generator_they_are_given(toy) -> None:

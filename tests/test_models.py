@@ -105,6 +105,7 @@ def test_camera_model_jacobian_linearises_the_model(flight) -> None:
     assert np.max(np.abs(moved - lin)) < 1e-5 * max(1.0, np.max(np.abs(out.jac)))
     projected_centre = CAMS[0].project(x[:, :3])
     np.testing.assert_allclose(out.mean[:, :2], projected_centre)
+    assert cam.observe(x).jac is None  # a Jacobian only when asked for
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
+from scipy.special import logsumexp
 
 from estimator_service.filters.common import (
     GaussianBelief,
@@ -26,9 +27,16 @@ from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
-__all__ = ["PF", "systematic_resample"]
+__all__ = ["BRIDGE_ESS", "BRIDGE_GAMMAS", "PF", "systematic_resample"]
 
 FloatArray = NDArray[np.float64]
+
+#: the fraction of ``M`` the bridged update's weights keep as effective sample size (Frei &
+#: Kuensch 2013 choose gamma so the particle part keeps about half the sample)
+BRIDGE_ESS = 0.5
+#: the gammas tried, smallest first: the least Kalman correction whose weights keep
+#: :data:`BRIDGE_ESS` (gamma 1 is the ensemble Kalman filter's update alone)
+BRIDGE_GAMMAS = np.linspace(0.1, 1.0, 10)
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> NDArray[np.intp]:
@@ -61,6 +69,16 @@ class PF:
         likelihood leaves one particle with almost all the weight, the weighted covariance
         is nearly zero and the cloud collapses onto that particle; the Kalman covariance
         keeps the spread a Gaussian filter would have.
+    update_rule
+        ``"table1"``: weight by the likelihood (steps 5-11). ``"bridge"``: the same while the
+        weights keep an effective sample size of :data:`BRIDGE_ESS` ``M``; when a reading is
+        too sharp for the cloud (the weights collapse) the ensemble Kalman particle filter of
+        Frei & Kuensch (2013, Biometrika 100, 781-800): the reading's likelihood is split
+        into ``L^gamma`` (an ensemble Kalman move of every particle, with the particles'
+        own predicted readings as the linearisation) and ``L^(1-gamma)`` (particle weights
+        and resampling), with the smallest ``gamma`` of :data:`BRIDGE_GAMMAS` whose weights
+        keep that sample size. No roughening follows a bridged update: its particles are
+        drawn from a Gaussian mixture, not copied.
     """
 
     __repr__ = short_repr
@@ -72,11 +90,14 @@ class PF:
     resample_below: float = 0.5
     roughen: float = 0.0
     roughen_cov: Literal["posterior", "kalman"] = "posterior"
+    update_rule: Literal["table1", "bridge"] = "table1"
     name: str = "PF"
 
     def __post_init__(self) -> None:
         if self.roughen_cov not in ("posterior", "kalman"):
             raise ValueError(f"roughen_cov must be 'posterior' or 'kalman', got {self.roughen_cov!r}")
+        if self.update_rule not in ("table1", "bridge"):
+            raise ValueError(f"update_rule must be 'table1' or 'bridge', got {self.update_rule!r}")
 
     @property
     def _wrap(self) -> Wrapping:
@@ -129,6 +150,10 @@ class PF:
         logw = np.where(np.isfinite(logw), logw, -np.inf)
         post = ParticleBelief(prior.particles, normalise_log_weights(logw))
         ess = post.ess
+        if self.update_rule == "bridge" and ess < BRIDGE_ESS * self.n_particles and ls is not None:
+            moved, ess = self._bridge(prior, r, dz, prior.weights @ var, rng)
+            post = ParticleBelief(moved, np.full(moved.shape[0], -math.log(moved.shape[0])))
+            return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, True)
         resampled = ess < self.resample_below * self.n_particles
         if resampled:
             keep = systematic_resample(post.weights, rng)
@@ -142,6 +167,51 @@ class PF:
                 moved = self._roughen(moved, cov, rng)
             post = ParticleBelief(moved, np.full(keep.size, -math.log(keep.size)))
         return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, resampled)
+
+    def _bridge(
+        self, prior: ParticleBelief, r: FloatArray, dz: FloatArray, rvar: FloatArray,
+        rng: np.random.Generator,
+    ) -> tuple[FloatArray, float]:  # fmt: skip
+        """The ensemble Kalman particle update (Frei & Kuensch 2013): particles ``(M, n)`` and
+        the effective sample size of its weights.
+
+        ``r (M, q)``: the reading minus each particle's predicted reading; ``dz (M, q)``: the
+        predicted readings' deviations from their mean; ``rvar (q,)``: the reading's mean
+        noise variance ``R``. With ``C = Pzz``, ``A = (C + R / gamma)^-1`` and ``B = A C``
+        (``H`` is the particles' statistical linearisation, ``H K1 = C A``):
+        ``nu = x + K1 r`` with ``K1 = Pxz A``; weights ``w N(d; 0, S2)`` with
+        ``d = (R / gamma) A r`` and ``S2 = B^T R B / gamma + R / (1 - gamma)``; then
+        ``nu + eta + K2 (d - H eta - zeta)`` for resampled ``nu``, with
+        ``eta ~ N(0, K1 (R / gamma) K1^T)``, ``zeta ~ N(0, R / (1 - gamma))`` and
+        ``K2 = K1 R B S2^-1 / gamma``.
+        """
+        w, lw = prior.weights, normalise_log_weights(prior.log_weights)
+        dx = self._deviations(prior)[1]
+        pxz, c = (dx * w[:, None]).T @ dz, (dz * w[:, None]).T @ dz
+        gam, eye = BRIDGE_GAMMAS, np.eye(rvar.size)
+        r_gamma = (rvar / gam[:, None])[:, :, None]  # R / gamma (G, q, 1)
+        p = c + r_gamma * eye  # C + R / gamma (G, q, q)
+        d = r_gamma * np.linalg.solve(p, np.broadcast_to(r.T, (gam.size, *r.T.shape)))  # (G, q, M)
+        b = np.linalg.solve(p, np.broadcast_to(c, p.shape))  # A C (G, q, q)
+        part = gam < 1.0  # gamma 1 leaves nothing to weight
+        s2 = (b[part].transpose(0, 2, 1) @ (rvar[:, None] * b[part]) / gam[part, None, None]
+              + (rvar / (1.0 - gam[part, None]))[:, :, None] * eye)  # fmt: skip
+        logw = np.tile(lw, (gam.size, 1))
+        logw[part] -= 0.5 * np.sum(d[part] * np.linalg.solve(s2, d[part]), axis=1)
+        logw -= logsumexp(logw, axis=1, keepdims=True)
+        ess = 1.0 / np.sum(np.exp(2 * logw), axis=1)
+        ok = ess >= BRIDGE_ESS * w.size
+        g = int(np.argmax(ok)) if ok.any() else gam.size - 1  # the smallest gamma that keeps it
+        gamma = float(gam[g])
+        k1t = sla.solve(p[g], pxz.T, assume_a="pos")  # (Pxz A)^T (q, n)
+        keep = systematic_resample(np.exp(logw[g]), rng)
+        noise = rng.standard_normal(r.shape) * np.sqrt(rvar / gamma)  # eta = K1 noise
+        moved = prior.particles[keep] + (r[keep] + noise) @ k1t
+        if part[g]:
+            k2t = sla.solve(s2[g], b[g].T @ (rvar[:, None] * k1t), assume_a="pos") / gamma  # K2^T (q, n)
+            zeta = rng.standard_normal(r.shape) * np.sqrt(rvar / (1.0 - gamma))
+            moved = moved + (d[g].T[keep] - noise @ b[g] - zeta) @ k2t
+        return self._wrap.state_value(moved), float(ess[g])
 
     def _roughen(self, moved: FloatArray, cov: FloatArray, rng: np.random.Generator) -> FloatArray:
         m, n = moved.shape

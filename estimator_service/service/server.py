@@ -71,6 +71,7 @@ class ServiceConfig:
     connect: tuple[str, ...] = ()
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
+    pf_update: str | None = None  # None: the model kind's (factory.PF_UPDATE_RULES)
     adapt_rate: float | None = None  # None: the model folder's choice (factory.adaptation_defaults)
     workers: int = 2
     limits: Limits = field(default_factory=Limits)
@@ -82,14 +83,16 @@ def service_filter(
     models: tuple[PredictionModel, ObservationModel],
 ) -> EKF | UKF | PF:  # fmt: skip
     """The filter the service runs for ``filter_name`` on ``model``'s fitted ``models``: the
-    particle count from ``config``; for a Gaussian filter the model folder's adaptation
+    particle count and update rule from ``config``; for a Gaussian filter the model folder's adaptation
     defaults, with the configured rate (0 included: off) in place of the folder's."""
     opts: dict[str, object] = {"n_particles": config.n_particles}
+    if config.pf_update is not None:
+        opts["update_rule"] = config.pf_update
     if filter_name != "pf":
         opts = adaptation_defaults(config.model_dir, model)
         if config.adapt_rate is not None:
             opts["adapt_rate"] = config.adapt_rate
-    return make_filter(filter_name, *models, system=system, **opts)
+    return make_filter(filter_name, *models, system=system, model_kind=model, **opts)
 
 
 class EstimatorService:
@@ -430,6 +433,7 @@ def main(argv: list[str] | None = None) -> int:
             tuple(args.connect),
             args.zenoh_config,
             args.particles,
+            args.pf_update,
             args.adapt,
             args.workers,
             limits_from(args),
