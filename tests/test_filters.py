@@ -389,12 +389,69 @@ def test_the_bridged_update_follows_the_kalman_filter_where_the_likelihood_is_to
     sharp = np.full(3, 1e-6)
     g, mean, cov, info, nees = _sharp_run("bridge", sharp)
     assert info.ess >= 0.5 * 2000 and info.resampled
+    assert info.dof == 3 and math.isfinite(info.nis) and info.diverged is False
     se = np.sqrt(np.diag(cov) / info.ess)
     assert np.all(np.abs(g.mean - mean) < 5 * se)
     np.testing.assert_allclose(np.diag(g.cov), np.diag(cov), rtol=0.3)
     assert 2.0 < nees < 8.0
     plain = _sharp_run("table1", sharp)
     assert plain[3].ess < 5 and plain[4] > 100  # what the bridge mends
+
+
+def _reference_bridge(x, logw, noise, z, gamma, rng):
+    """Frei & Kuensch's (2013) update written with the linear model's ``H`` and the cloud's
+    covariance ``P``, as the paper states it: ``K1 = P H^T (H P H^T + R / gamma)^-1``,
+    ``nu = x + K1 (z - H x)``, ``Q = K1 R K1^T / gamma``, weights ``w N(z; H nu, H Q H^T +
+    R / (1 - gamma))``, ``K2 = Q H^T (H Q H^T + R / (1 - gamma))^-1``; the draws in the
+    implementation's order. The moved particles and the weights' effective sample size."""
+    w = np.exp(logw)
+    dx = x - w @ x
+    p, r = (dx * w[:, None]).T @ dx, np.diag(noise)
+    k1 = p @ H.T @ np.linalg.inv(H @ p @ H.T + r / gamma)
+    nu = x + (z - x @ H.T) @ k1.T
+    q = k1 @ r @ k1.T / gamma
+    alpha, k2 = w, None
+    if gamma < 1:
+        s2 = H @ q @ H.T + r / (1 - gamma)
+        innov = z - nu @ H.T
+        alpha = w * np.exp(-0.5 * np.einsum("mi,ij,mj->m", innov, np.linalg.inv(s2), innov))
+        k2 = q @ H.T @ np.linalg.inv(s2)
+    alpha = alpha / alpha.sum()
+    keep = systematic_resample(alpha, rng)
+    xi = rng.standard_normal((x.shape[0], 3)) * np.sqrt(noise / gamma)
+    moved = nu[keep] + xi @ k1.T
+    if k2 is not None:
+        zeta = rng.standard_normal((x.shape[0], 3)) * np.sqrt(noise / (1 - gamma))
+        moved = moved + (z - nu[keep] @ H.T - xi @ (H @ k1).T - zeta) @ k2.T
+    return moved, 1.0 / np.sum(alpha**2)
+
+
+@pytest.mark.parametrize("uneven", [False, True])
+def test_the_bridged_update_is_frei_and_kuenschs_with_the_smallest_gamma_that_keeps_half(uneven) -> None:
+    """A two-mode cloud (3,000 particles near the reading, 1,000 a metre away) and a 3 cm
+    reading: the implementation's algebra (``A = (C + R / gamma)^-1``, ``d = (R / gamma) A
+    r``) gives the paper's update to rounding, with the smallest gamma of the grid whose
+    weights keep half the sample. Prior weights that keep less than half (``uneven``) leave
+    no such gamma: gamma 1, the ensemble Kalman move alone, resampled by the prior weights."""
+    from estimator_service.filters.particle import BRIDGE_ESS, BRIDGE_GAMMAS
+
+    m, noise, rng = 4000, np.full(3, 1e-3), np.random.default_rng(11)
+    sd = np.array([0.1, 0.1, 0.05, 0.05])
+    far = [1.0, 0, 0, 0] + rng.standard_normal((1000, 4)) * sd
+    x = np.concatenate([rng.standard_normal((3000, 4)) * sd, far])
+    logw = np.full(m, -np.log(m)) + (rng.normal(size=m) * 1.5 if uneven else 0.0)
+    logw -= np.logaddexp.reduce(logw)
+    prior, z = ParticleBelief(x, logw), np.array([0.02, -0.01, 0.01])
+    pf = PF(PRED, LinearGaussianObservation(H, noise), n_particles=m, update_rule="bridge")
+    zs = x @ H.T
+    w = np.exp(logw)
+    moved, ess, gamma = pf._bridge(prior, z - zs, zs - w @ zs, noise, np.random.default_rng(3))
+    refs = {g: _reference_bridge(x, logw, noise, z, g, np.random.default_rng(3)) for g in BRIDGE_GAMMAS}
+    kept = [g for g in BRIDGE_GAMMAS if refs[g][1] >= BRIDGE_ESS * m]
+    assert gamma == (1.0 if uneven else kept[0]) and (uneven or 0 < gamma < 1)
+    assert not kept if uneven else kept
+    np.testing.assert_allclose(moved, refs[gamma][0], atol=1e-9)
+    assert ess == pytest.approx(refs[gamma][1], rel=1e-9) and ess <= m
 
 
 def test_the_bridged_update_is_table1_while_the_weights_keep_half_the_sample() -> None:

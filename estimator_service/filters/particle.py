@@ -151,7 +151,7 @@ class PF:
         post = ParticleBelief(prior.particles, normalise_log_weights(logw))
         ess = post.ess
         if self.update_rule == "bridge" and ess < BRIDGE_ESS * self.n_particles and ls is not None:
-            moved, ess = self._bridge(prior, r, dz, prior.weights @ var, rng)
+            moved, ess, _ = self._bridge(prior, r, dz, prior.weights @ var, rng)
             post = ParticleBelief(moved, np.full(moved.shape[0], -math.log(moved.shape[0])))
             return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, True)
         resampled = ess < self.resample_below * self.n_particles
@@ -171,9 +171,9 @@ class PF:
     def _bridge(
         self, prior: ParticleBelief, r: FloatArray, dz: FloatArray, rvar: FloatArray,
         rng: np.random.Generator,
-    ) -> tuple[FloatArray, float]:  # fmt: skip
-        """The ensemble Kalman particle update (Frei & Kuensch 2013): particles ``(M, n)`` and
-        the effective sample size of its weights.
+    ) -> tuple[FloatArray, float, float]:  # fmt: skip
+        """The ensemble Kalman particle update (Frei & Kuensch 2013): particles ``(M, n)``, the
+        effective sample size of its weights and the ``gamma`` chosen.
 
         ``r (M, q)``: the reading minus each particle's predicted reading; ``dz (M, q)``: the
         predicted readings' deviations from their mean; ``rvar (q,)``: the reading's mean
@@ -211,7 +211,7 @@ class PF:
             k2t = sla.solve(s2[g], b[g].T @ (rvar[:, None] * k1t), assume_a="pos") / gamma  # K2^T (q, n)
             zeta = rng.standard_normal(r.shape) * np.sqrt(rvar / (1.0 - gamma))
             moved = moved + (d[g].T[keep] - noise @ b[g] - zeta) @ k2t
-        return self._wrap.state_value(moved), float(ess[g])
+        return self._wrap.state_value(moved), float(ess[g]), gamma
 
     def _roughen(self, moved: FloatArray, cov: FloatArray, rng: np.random.Generator) -> FloatArray:
         m, n = moved.shape
