@@ -62,6 +62,9 @@ def _collect(args: argparse.Namespace) -> int:
 def _train_agent(args: argparse.Namespace) -> int:
     from agents.rl import AgentSpec, evaluate_agent, train_agent
 
+    if args.pf_update is not None:
+        raise ValueError("--pf-update: train-agent's particle filters take the model kind's update rule")
+
     spec = AgentSpec(
         args.algo,
         args.obs,

@@ -175,22 +175,22 @@ def capacity_run(
     return (p99, cpu / (n_blimps * int(seconds / 0.25)) * 1e3) if pid is not None else (p99, lag)
 
 
-def cpu_per_step(models: Path, model: str, n_blimps: int, seconds: float) -> tuple[float, float]:
+def cpu_per_step(models: Path, model: str, n_blimps: int, seconds: float) -> tuple[float, float, float]:
     """CPU milliseconds per step message, all threads of the receiving process, with
     ``n_blimps`` at 4 Hz: ``gpbf serve`` stepping ``model`` GP-EKF blimps, and the bare zenoh
-    echo (``zenoh_echo.py``, no work) receiving the same messages. Each after one uncounted
-    second of the same load."""
+    echo (``zenoh_echo.py``, no work) receiving the same messages, each after one uncounted
+    second of the same load; and the service's p99 latency meanwhile (ms; inf: it fell behind)."""
     pids: list[int] = []
     with service_session(models, model, pids=pids) as session:
         capacity_run(session, n_blimps, 1.0, "cpu-warm")
-        served = capacity_run(session, n_blimps, seconds, "cpu", pid=pids[-1])[1]
+        p99, served = capacity_run(session, n_blimps, seconds, "cpu", pid=pids[-1])
     with echo_session(0.0, pids=pids) as session:
         echo_keys = [f"echo/cpu{i}" for i in range(n_blimps)]
         load(session, echo_keys, _step_payload, 1.0)
         cpu0 = cpu_seconds(pids[-1])
         load(session, echo_keys, _step_payload, seconds)
         echoed = (cpu_seconds(pids[-1]) - cpu0) / (n_blimps * int(seconds / 0.25)) * 1e3
-    return served, echoed
+    return served, echoed, p99
 
 
 def ladder(run, levels: list[int], label: str) -> int:
@@ -277,9 +277,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         legs = phases(models, n_rtt)
         print("GP-EKF round trip by leg (p50 ms): " + ", ".join(f"{k} {v:.3f}" for k, v in legs.items()))
         cpu_blimps = levels[min(1, len(levels) - 1)]  # 50 blimps (25 in the smoke run): both keep up
-        service_cpu, echo_cpu = cpu_per_step(models, "sparse", cpu_blimps, seconds)
-        print(f"CPU per step message, {cpu_blimps} blimps at 4 Hz: service (sparse GP-EKF) "
-              f"{service_cpu:.3f} ms, bare zenoh echo {echo_cpu:.3f} ms")  # fmt: skip
+        service_cpu, echo_cpu, cpu_p99 = cpu_per_step(models, "sparse", cpu_blimps, seconds)
+        print(f"CPU per step message, {cpu_blimps} blimps at 4 Hz: service (sparse GP-EKF) {service_cpu:.3f} "
+              f"ms (p99 latency {cpu_p99:.2f} ms), bare zenoh echo {echo_cpu:.3f} ms")  # fmt: skip
         best_echo = echo_capacity(levels, seconds)
         best_sparse = capacity(models, "sparse", levels, seconds)
         best_exact = capacity(models, "gp", [n for n in levels if n <= 100], seconds)
@@ -314,6 +314,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "blimps_over_echo": round(best_sparse / best_echo, 3) if best_echo else None,
         "overhead_over_zenoh_floor": round(res["ekf_overhead_p50_ms"] / res["ekf_zenoh_floor_ms"], 3),
         "cpu_blimps_at_4hz": cpu_blimps,
+        "cpu_service_p99_ms": round(cpu_p99, 3),
         "service_cpu_per_step_ms": round(service_cpu, 4),
         "echo_cpu_per_step_ms": round(echo_cpu, 4),
         "sparse_inprocess_step_ms": round(res["sparse_inprocess_p50_ms"], 4),

@@ -133,9 +133,10 @@ def run_track(args: argparse.Namespace) -> int:
     from estimator_service.factory import build_filter
     from estimator_service.tracking import track_flight
 
+    options = filter_options(args)  # an option mistake before any file is read
     flight = _read_log(args.log, args)
     args.model = model_kind(args)
-    filt = build_filter(args.filter, args.model, args.models, **filter_options(args))
+    filt = build_filter(args.filter, args.model, args.models, **options)
     with ProgressBar(f"track {args.filter}/{args.model}", len(flight) - 1, enabled=not args.quiet) as bar:
         result = track_flight(filt, flight, rng=np.random.default_rng(args.seed), on_step=bar.update_to)
     scores = result.scores()

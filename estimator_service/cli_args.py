@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from estimator_service.filters.adaptive import ADAPT_RATE
+from estimator_service.filters.particle import UPDATE_RULES
 
 __all__ = [
     "DEFAULT_FILTER",
@@ -160,7 +161,7 @@ def add_filter_options(p: argparse.ArgumentParser, *, models_required: bool = Fa
     )  # fmt: skip
     p.add_argument("--particles", type=checked_int(10, 1_000_000), default=2000, help="particles of the PF")
     p.add_argument(
-        "--pf-update", choices=("table1", "bridge"), default=None,
+        "--pf-update", choices=UPDATE_RULES, default=None,
         help="PF: weight by the likelihood as the paper's Table 1, or bridge to an ensemble Kalman move "
         "when a reading is too sharp for the particles (default: bridge for learned models, table1 for "
         "param)",
@@ -186,6 +187,8 @@ def model_kind(args: argparse.Namespace) -> str:
 
 def filter_options(args: argparse.Namespace) -> dict[str, object]:
     """The filter's own options from :func:`add_filter_options`' arguments."""
+    if args.pf_update is not None and args.filter != "pf":
+        raise ValueError(f"--pf-update: only the particle filter has an update rule, not {args.filter}")
     if args.filter == "pf":
         rule = {} if args.pf_update is None else {"update_rule": args.pf_update}
         return {"n_particles": args.particles, **rule}

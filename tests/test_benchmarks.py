@@ -113,3 +113,12 @@ def test_the_pf_update_experiment_runs_quick_and_summarises(tmp_path: Path) -> N
     assert {r["rule"] for r in rows} == {"table1", "bridge"} and len(rows) == 2 * sum(
         p["table1"]["runs"] for p in last["summary"].values()
     )
+    traced = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "results" / "pf_update" / "experiment.py"), "--quick",
+         "--seed", "5", "--kinds", "gp", "--out", str(tmp_path), "--trace", "0,0,5", "--rule", "bridge"],
+        check=True, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    lines = traced.stdout.strip().splitlines()
+    worst = json.loads(lines[-1])
+    assert lines[0].startswith("step") and worst["rule"] == "bridge" and 0 < worst["ess_min"] <= 200
+    assert all(math.isfinite(worst[k]) for k in ("prior_mm", "post_mm"))

@@ -33,6 +33,9 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["collect", "--seed", "-3"], "--seed"),
         (["track", "flight.npz", "--particles", "0"], "--particles"),
         (["track", "flight.npz", "--filter", "kf"], "--filter"),
+        (["track", "flight.npz", "--pf-update", "enkf"], "--pf-update"),
+        (["track", "flight.npz", "--pf-update", "bridge"], "--pf-update"),  # the EKF has none
+        (["train-agent", "--filter", "pf", "--pf-update", "table1"], "--pf-update"),
         (["train", "f.npz", "--points", "1"], "--points"),
         (["train", "f.npz", "--calibration-seconds", "-5"], "--calibration-seconds"),
         (["train-agent", "--timesteps", "0"], "--timesteps"),

@@ -426,20 +426,22 @@ def _reference_bridge(x, logw, noise, z, gamma, rng):
     return moved, 1.0 / np.sum(alpha**2)
 
 
-@pytest.mark.parametrize("uneven", [False, True])
-def test_the_bridged_update_is_frei_and_kuenschs_with_the_smallest_gamma_that_keeps_half(uneven) -> None:
+@pytest.mark.parametrize(("spread", "expected"), [(0.0, 0.1), (0.8, 0.2), (1.5, 1.0)])
+def test_the_bridged_update_is_frei_and_kuenschs_with_the_least_gamma_keeping_half(spread, expected) -> None:
     """A two-mode cloud (3,000 particles near the reading, 1,000 a metre away) and a 3 cm
     reading: the implementation's algebra (``A = (C + R / gamma)^-1``, ``d = (R / gamma) A
     r``) gives the paper's update to rounding, with the smallest gamma of the grid whose
-    weights keep half the sample. Prior weights that keep less than half (``uneven``) leave
-    no such gamma: gamma 1, the ensemble Kalman move alone, resampled by the prior weights."""
+    weights keep half the sample: 0.1 with equal prior weights; 0.2 with prior weights
+    (log-normal, ``spread``) that keep 2,090 of 4,000, where gamma 0.1's keep 1,985; and
+    gamma 1, the ensemble Kalman move alone resampled by the prior weights, when they keep
+    456 and no gamma can."""
     from estimator_service.filters.particle import BRIDGE_ESS, BRIDGE_GAMMAS
 
     m, noise, rng = 4000, np.full(3, 1e-3), np.random.default_rng(11)
     sd = np.array([0.1, 0.1, 0.05, 0.05])
     far = [1.0, 0, 0, 0] + rng.standard_normal((1000, 4)) * sd
     x = np.concatenate([rng.standard_normal((3000, 4)) * sd, far])
-    logw = np.full(m, -np.log(m)) + (rng.normal(size=m) * 1.5 if uneven else 0.0)
+    logw = np.full(m, -np.log(m)) + rng.normal(size=m) * spread
     logw -= np.logaddexp.reduce(logw)
     prior, z = ParticleBelief(x, logw), np.array([0.02, -0.01, 0.01])
     pf = PF(PRED, LinearGaussianObservation(H, noise), n_particles=m, update_rule="bridge")
@@ -448,10 +450,38 @@ def test_the_bridged_update_is_frei_and_kuenschs_with_the_smallest_gamma_that_ke
     moved, ess, gamma = pf._bridge(prior, z - zs, zs - w @ zs, noise, np.random.default_rng(3))
     refs = {g: _reference_bridge(x, logw, noise, z, g, np.random.default_rng(3)) for g in BRIDGE_GAMMAS}
     kept = [g for g in BRIDGE_GAMMAS if refs[g][1] >= BRIDGE_ESS * m]
-    assert gamma == (1.0 if uneven else kept[0]) and (uneven or 0 < gamma < 1)
-    assert not kept if uneven else kept
+    assert gamma == pytest.approx(expected) and gamma == (kept[0] if kept else 1.0)
     np.testing.assert_allclose(moved, refs[gamma][0], atol=1e-9)
     assert ess == pytest.approx(refs[gamma][1], rel=1e-9) and ess <= m
+
+
+@dataclass(frozen=True)
+class InfiniteWhereFar:
+    """The linear reading, sharp, and infinite for particles with ``x_0 > 1`` (a model
+    evaluated far outside its data)."""
+
+    state_dim: int = 4
+    obs_dim: int = 3
+
+    def observe(self, x, *, jac=False, var=True) -> ModelOutput:
+        out = LinearGaussianObservation(H, np.full(3, 1e-4)).observe(x, jac=jac, var=var)
+        far = np.broadcast_to(x[:, :1] > 1.0, out.mean.shape)
+        return ModelOutput(np.where(far, np.inf, out.mean), out.var, out.jac)
+
+
+def test_a_non_finite_reading_of_some_particles_keeps_table1s_update() -> None:
+    """Table 1 gives particles whose predicted reading is infinite no weight; the bridge,
+    whose moments would be NaN, is not tried: the same particles, draw for draw."""
+    prior = GaussianBelief(np.array([0.5, -0.2, 0.1, 0.0]), np.diag([0.3, 0.3, 0.1, 0.1]))
+    posts = []
+    for rule in ("table1", "bridge"):
+        pf, rng = PF(PRED, InfiniteWhereFar(), n_particles=500, update_rule=rule), np.random.default_rng(4)
+        b = pf.initial(prior, rng)
+        assert np.any(b.particles[:, 0] > 1.0) and np.any(b.particles[:, 0] < 1.0)
+        post, info = pf.update(b, np.array([0.4, -0.1, 0.3]), None, rng)
+        assert np.all(np.isfinite(post.particles)) and info.ess < 0.5 * 500
+        posts.append(post)
+    np.testing.assert_array_equal(posts[0].particles, posts[1].particles)
 
 
 def test_the_bridged_update_is_table1_while_the_weights_keep_half_the_sample() -> None:

@@ -796,3 +796,18 @@ def test_one_tenants_catch_ups_use_only_its_share_of_the_services_budget() -> No
         assert whole.take("b", 0.1) == "the service allows 0 s now (0.5 s per second, --catch-up-share)"
         whole.settle("a", 2.0, 1.0)
         assert whole.available("b") == whole.service.available() == pytest.approx(1.0) and whole.held == 0
+
+
+def test_a_service_configuration_names_a_pf_update_rule_it_knows(tmp_path: Path) -> None:
+    """``ServiceConfig(pf_update=)`` takes the PF's update rules or None (the model kind's), and
+    refuses anything else by name before a service starts."""
+    from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
+    from estimator_service.service.server import ServiceConfig, service_filter
+
+    models = (LinearGaussianPrediction(np.eye(2), np.eye(2), np.ones(2)),
+              LinearGaussianObservation(np.eye(2), np.ones(2)))  # fmt: skip
+    configs = {chosen: ServiceConfig(tmp_path, pf_update=chosen) for chosen in (None, "table1", "bridge")}
+    rules = {k: service_filter(c, None, "pf", "gp", models).update_rule for k, c in configs.items()}
+    assert rules == {None: "bridge", "table1": "table1", "bridge": "bridge"}  # None: the gp kind's
+    with pytest.raises(ValueError, match="pf_update"):
+        ServiceConfig(tmp_path, pf_update="enkf")

@@ -27,7 +27,7 @@ from estimator_service.filters.policy import step_one
 from estimator_service.models.base import ObservationModel, PredictionModel, observe_columns
 from estimator_service.reprs import short_repr
 
-__all__ = ["BRIDGE_ESS", "BRIDGE_GAMMAS", "PF", "systematic_resample"]
+__all__ = ["BRIDGE_ESS", "BRIDGE_GAMMAS", "PF", "UPDATE_RULES", "systematic_resample"]
 
 FloatArray = NDArray[np.float64]
 
@@ -37,6 +37,8 @@ BRIDGE_ESS = 0.5
 #: the gammas tried, smallest first: the least Kalman correction whose weights keep
 #: :data:`BRIDGE_ESS` (gamma 1 is the ensemble Kalman filter's update alone)
 BRIDGE_GAMMAS = np.linspace(0.1, 1.0, 10)
+#: the PF's updates: the paper's Table 1, or bridged to an ensemble Kalman move (``PF.update_rule``)
+UPDATE_RULES = ("table1", "bridge")
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> NDArray[np.intp]:
@@ -77,8 +79,10 @@ class PF:
         into ``L^gamma`` (an ensemble Kalman move of every particle, with the particles'
         own predicted readings as the linearisation) and ``L^(1-gamma)`` (particle weights
         and resampling), with the smallest ``gamma`` of :data:`BRIDGE_GAMMAS` whose weights
-        keep that sample size. No roughening follows a bridged update: its particles are
-        drawn from a Gaussian mixture, not copied.
+        keep that sample size, or gamma 1 when none does. The ensemble part uses the
+        particles' mean reading noise variance ``R`` (Table 1's weights, each particle's own).
+        No roughening follows a bridged update: its particles are drawn from a Gaussian
+        mixture, not copied.
     """
 
     __repr__ = short_repr
@@ -96,8 +100,8 @@ class PF:
     def __post_init__(self) -> None:
         if self.roughen_cov not in ("posterior", "kalman"):
             raise ValueError(f"roughen_cov must be 'posterior' or 'kalman', got {self.roughen_cov!r}")
-        if self.update_rule not in ("table1", "bridge"):
-            raise ValueError(f"update_rule must be 'table1' or 'bridge', got {self.update_rule!r}")
+        if self.update_rule not in UPDATE_RULES:
+            raise ValueError(f"update_rule must be one of {UPDATE_RULES}, got {self.update_rule!r}")
 
     @property
     def _wrap(self) -> Wrapping:
@@ -132,8 +136,10 @@ class PF:
         self, prior: ParticleBelief, z: FloatArray, valid: NDArray[np.bool_] | None = None,
         rng: np.random.Generator | None = None,
     ) -> tuple[ParticleBelief, StepInfo]:  # fmt: skip
-        """Steps 5-11: weight by the observation likelihood, resample when ESS is low
-        (``rng`` required)."""
+        """Steps 5-11: weight by the observation likelihood, resample when ESS is low; with
+        ``update_rule="bridge"``, the bridged update instead when the weights keep less than
+        :data:`BRIDGE_ESS` of the particles and every particle's predicted reading and its
+        variance are finite (``rng`` required)."""
         rng = _need_rng(rng, "update")
         idx = np.arange(self.observation.obs_dim) if valid is None else np.flatnonzero(valid)
         if idx.size == 0:
@@ -150,11 +156,12 @@ class PF:
         logw = np.where(np.isfinite(logw), logw, -np.inf)
         post = ParticleBelief(prior.particles, normalise_log_weights(logw))
         ess = post.ess
-        if self.update_rule == "bridge" and ess < BRIDGE_ESS * self.n_particles and ls is not None:
+        m = prior.particles.shape[0]
+        if self.update_rule == "bridge" and ess < BRIDGE_ESS * m and ls is not None and finite(zs, var):
             moved, ess, _ = self._bridge(prior, r, dz, prior.weights @ var, rng)
             post = ParticleBelief(moved, np.full(moved.shape[0], -math.log(moved.shape[0])))
             return post, StepInfo(nis, idx.size, implausible(nis, idx.size), ess, True)
-        resampled = ess < self.resample_below * self.n_particles
+        resampled = ess < self.resample_below * m
         if resampled:
             keep = systematic_resample(post.weights, rng)
             moved = post.particles[keep]

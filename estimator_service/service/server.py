@@ -27,6 +27,7 @@ import zenoh
 
 from estimator_service.cli_args import Parser, add_filter_options, checked_int, model_kind
 from estimator_service.factory import adaptation_defaults, load_models, make_filter, warm_up
+from estimator_service.filters.particle import UPDATE_RULES
 from estimator_service.service import keys
 from estimator_service.service.batching import step_together
 from estimator_service.service.config import (
@@ -71,11 +72,15 @@ class ServiceConfig:
     connect: tuple[str, ...] = ()
     zenoh_config_file: Path | None = None
     n_particles: int = 2000
-    pf_update: str | None = None  # None: the model kind's (factory.PF_UPDATE_RULES)
     adapt_rate: float | None = None  # None: the model folder's choice (factory.adaptation_defaults)
     workers: int = 2
     limits: Limits = field(default_factory=Limits)
     service_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+    pf_update: str | None = None  # the PF's update_rule; None: the model kind's (factory.PF_UPDATE_RULES)
+
+    def __post_init__(self) -> None:
+        if self.pf_update not in (None, *UPDATE_RULES):
+            raise ValueError(f"pf_update must be one of {UPDATE_RULES} or None, got {self.pf_update!r}")
 
 
 def service_filter(
@@ -433,10 +438,10 @@ def main(argv: list[str] | None = None) -> int:
             tuple(args.connect),
             args.zenoh_config,
             args.particles,
-            args.pf_update,
             args.adapt,
             args.workers,
             limits_from(args),
+            pf_update=args.pf_update,
         )
         service = EstimatorService(cfg)
     except (OSError, ValueError, zenoh.ZError) as exc:

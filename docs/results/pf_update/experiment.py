@@ -12,6 +12,13 @@ random streams (``seed``, ``seed + 1``, ``seed + 2``). Models are kept in ``--ou
 reused when the command is run again. Writes ``rows.json`` (one row per run) and prints a
 summary per kind and rule, its last line one JSON object. ``--quick``: a small version for
 the smoke test.
+
+``--trace FOLD,SEGMENT,STREAM --kinds KIND --rule RULE`` follows one run step by step instead
+(``--out`` a folder with that fold's models, such as a ``gpbf reproduce`` folder of the same
+seed): per camera step the error of the predicted and updated position means (mm), their
+spreads (mean position standard deviation, mm), the weights' effective sample size and the
+innovation's NIS per degree of freedom; its last line one JSON object with the largest
+errors and the smallest effective sample size.
 """
 
 from __future__ import annotations
@@ -28,8 +35,9 @@ from agents.experiments.reproduce import ReproduceSettings, split_folds
 from agents.experiments.resume import trained
 from agents.sim import collect_flight
 from estimator_service.factory import build_filter
+from estimator_service.filters import GaussianBelief
 from estimator_service.gp.linalg import single_threaded_blas
-from estimator_service.tracking import aggregate_rms, segments, track_flight
+from estimator_service.tracking import _default_init_std, aggregate_rms, segments, track_flight
 from estimator_service.training import train_models
 
 RULES = ("table1", "bridge")
@@ -90,6 +98,41 @@ def summary(rows: list[dict]) -> dict:
     return out
 
 
+def trace(args: argparse.Namespace) -> dict:
+    """One run of ``--trace``, step by step (see the module's docstring)."""
+    s = settings(args)
+    fold, segment, stream = args.trace
+    flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
+    test = split_folds(flight, s.folds)[fold][1]
+    seg = round(s.track_seconds / test.dt)
+    rows = segments(len(test), seg, min(seg, round(s.pf_seconds / test.dt)))[segment]
+    fl = test.select(np.arange(len(test))[rows])
+    filt = build_filter("pf", args.kinds[0], args.out / f"models_fold{fold}", n_particles=s.particles,
+                        update_rule=args.rule)  # fmt: skip
+    rng = np.random.default_rng(stream)
+    start = GaussianBelief(fl.state[0].copy(), np.diag(_default_init_std(fl) ** 2))  # as track_flight
+    belief = filt.initial(start, rng)
+    valid, worst = fl.expand_valid(), {"prior_mm": 0.0, "post_mm": 0.0, "ess_min": float(s.particles)}
+    with single_threaded_blas():
+        for k in range(len(fl) - 1):
+            prior = filt.predict(belief, fl.control[k], rng)
+            belief, info = filt.update(prior, fl.z[k + 1], valid[k + 1], rng)
+            if not info.dof:
+                continue
+            (e0, s0), (e1, s1) = (_position(filt.gaussian(b), fl.state[k + 1]) for b in (prior, belief))
+            print(f"step {k + 1:3d}: prior error {e0:7.1f} mm, sd {s0:5.1f} | updated error {e1:7.1f} mm, "
+                  f"sd {s1:5.1f} | ESS {info.ess:6.1f} | NIS/dof {info.nis / info.dof:6.2f}")  # fmt: skip
+            worst = {"prior_mm": max(worst["prior_mm"], e0), "post_mm": max(worst["post_mm"], e1),
+                     "ess_min": min(worst["ess_min"], info.ess)}  # fmt: skip
+    return {"trace": list(args.trace), "kind": args.kinds[0], "rule": args.rule, **worst}
+
+
+def _position(g: GaussianBelief, truth: np.ndarray) -> tuple[float, float]:
+    """Position error of the mean and mean position standard deviation, both in mm."""
+    sd = np.sqrt(np.diag(g.cov)[:3]).mean()
+    return float(np.linalg.norm(g.mean[:3] - truth[:3]) * 1e3), float(sd * 1e3)
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seed", type=int, required=True, help="the flight's seed (no report's: 0 and 1 are)")
@@ -97,7 +140,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--folds", type=lambda v: [int(f) for f in v.split(",")], default=[0, 1], help="folds")
     p.add_argument("--out", type=Path, required=True, help="folder for the models and rows.json")
     p.add_argument("--quick", action="store_true", help="a small version (smoke test)")
+    p.add_argument("--trace", type=lambda v: [int(f) for f in v.split(",")], default=None,
+                   help="FOLD,SEGMENT,STREAM: follow one run step by step")  # fmt: skip
+    p.add_argument("--rule", choices=RULES, default="table1", help="the update rule --trace follows")
     args = p.parse_args(argv)
+    if args.trace is not None:
+        res = trace(args)
+        print(json.dumps(res))
+        return res
     t0 = time.perf_counter()
     rows = run(args)
     res = {"seed": args.seed, "folds": args.folds, "quick": args.quick, "summary": summary(rows),
