@@ -457,25 +457,31 @@ def test_the_bridged_update_is_frei_and_kuenschs_with_the_least_gamma_keeping_ha
 
 @dataclass(frozen=True)
 class InfiniteWhereFar:
-    """The linear reading, sharp, and infinite for particles with ``x_0 > 1`` (a model
-    evaluated far outside its data)."""
+    """The linear reading, sharp, with an infinite mean (or variance: ``field``) for
+    particles with ``x_0 > 1`` (a model evaluated far outside its data)."""
 
+    field: str = "mean"
     state_dim: int = 4
     obs_dim: int = 3
 
     def observe(self, x, *, jac=False, var=True) -> ModelOutput:
         out = LinearGaussianObservation(H, np.full(3, 1e-4)).observe(x, jac=jac, var=var)
         far = np.broadcast_to(x[:, :1] > 1.0, out.mean.shape)
-        return ModelOutput(np.where(far, np.inf, out.mean), out.var, out.jac)
+        if self.field == "mean":
+            return ModelOutput(np.where(far, np.inf, out.mean), out.var, out.jac)
+        return ModelOutput(out.mean, np.where(far, np.inf, out.var), out.jac)
 
 
-def test_a_non_finite_reading_of_some_particles_keeps_table1s_update() -> None:
-    """Table 1 gives particles whose predicted reading is infinite no weight; the bridge,
-    whose moments would be NaN, is not tried: the same particles, draw for draw."""
+@pytest.mark.parametrize("field", ["mean", "var"])
+def test_a_non_finite_reading_of_some_particles_keeps_table1s_update(field: str) -> None:
+    """Table 1 gives particles whose predicted reading or its variance is infinite no weight;
+    the bridge, whose moments would not be finite, is not tried: the same particles, draw for
+    draw."""
     prior = GaussianBelief(np.array([0.5, -0.2, 0.1, 0.0]), np.diag([0.3, 0.3, 0.1, 0.1]))
     posts = []
     for rule in ("table1", "bridge"):
-        pf, rng = PF(PRED, InfiniteWhereFar(), n_particles=500, update_rule=rule), np.random.default_rng(4)
+        model = InfiniteWhereFar(field)
+        pf, rng = PF(PRED, model, n_particles=500, update_rule=rule), np.random.default_rng(4)
         b = pf.initial(prior, rng)
         assert np.any(b.particles[:, 0] > 1.0) and np.any(b.particles[:, 0] < 1.0)
         post, info = pf.update(b, np.array([0.4, -0.1, 0.3]), None, rng)
