@@ -4,6 +4,7 @@ the bare zenoh floors it is compared with."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -141,14 +142,19 @@ def echo_session(work_s: float, stream_mb: float = 0.0, pids: list[int] | None =
 def cpu_seconds(pid: int) -> float:
     """CPU seconds process ``pid``'s threads have run, from Linux's per-thread
     ``/proc/<pid>/task/<tid>/schedstat`` (nanoseconds; a thread that ended between two
-    readings is missing from the second, so measure across threads that live on)."""
-    total = 0
+    readings is missing from the second, so measure across threads that live on); from
+    ``/proc/<pid>/stat``'s user and system time (clock ticks) on a kernel without schedstat."""
+    total, read = 0, False
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             total += int((task / "schedstat").read_text().split()[0])
-        except FileNotFoundError:  # the thread ended while we read
+            read = True
+        except FileNotFoundError:  # the thread ended while we read, or no schedstat
             continue
-    return total / 1e9
+    if read:
+        return total / 1e9
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def echo_floor(work_ms: float, n: int, stream_mb: float = 0.0) -> float:
