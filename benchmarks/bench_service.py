@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import threading
@@ -160,19 +161,28 @@ def _step_payload(tick: int) -> bytes:
 
 def capacity_run(
     session, n_blimps: int, seconds: float, tag: str, pid: int | None = None
-) -> tuple[float, float]:
-    """p99 latency (ms) and sender lag (s) of ``n_blimps`` each stepping at 4 Hz; with
-    ``pid``, the CPU milliseconds that process spent per step message instead of the lag."""
+) -> tuple[float, float, float]:
+    """p99 latency (ms) and sender lag (s) of ``n_blimps`` each stepping at 4 Hz, and with
+    ``pid`` the CPU milliseconds that process spent per step message (NaN without)."""
     rng = np.random.default_rng(2)
     clients = [EstimatorClient(session, f"{tag}-{n_blimps}-{i}") for i in range(n_blimps)]
     for c in clients:
         c.reset(rng.normal(size=12) * 0.5, np.full(12, 0.1), t=0.0)
-    cpu0 = cpu_seconds(pid) if pid is not None else 0.0
-    p99, lag = load(session, [keys.blimp_key(c.blimp, "step") for c in clients], _step_payload, seconds)
-    cpu = (cpu_seconds(pid) - cpu0) if pid is not None else 0.0
+    run = lambda: load(session, [keys.blimp_key(c.blimp, "step") for c in clients], _step_payload, seconds)  # noqa: E731
+    (p99, lag), cpu_ms = _cpu_per_message(pid, n_blimps, seconds, run)
     for c in clients:
         c.close()
-    return (p99, cpu / (n_blimps * int(seconds / 0.25)) * 1e3) if pid is not None else (p99, lag)
+    return p99, lag, cpu_ms
+
+
+def _cpu_per_message(pid: int | None, n_blimps: int, seconds: float, run):
+    """``run()``'s result and the CPU milliseconds process ``pid`` spent meanwhile per message
+    of ``n_blimps`` at 4 Hz for ``seconds`` (NaN without ``pid``)."""
+    if pid is None:
+        return run(), math.nan
+    cpu0 = cpu_seconds(pid)
+    out = run()
+    return out, (cpu_seconds(pid) - cpu0) / (n_blimps * int(seconds / 0.25)) * 1e3
 
 
 def cpu_per_step(models: Path, model: str, n_blimps: int, seconds: float) -> tuple[float, float, float]:
@@ -183,13 +193,12 @@ def cpu_per_step(models: Path, model: str, n_blimps: int, seconds: float) -> tup
     pids: list[int] = []
     with service_session(models, model, pids=pids) as session:
         capacity_run(session, n_blimps, 1.0, "cpu-warm")
-        p99, served = capacity_run(session, n_blimps, seconds, "cpu", pid=pids[-1])
+        p99, _, served = capacity_run(session, n_blimps, seconds, "cpu", pid=pids[-1])
     with echo_session(0.0, pids=pids) as session:
         echo_keys = [f"echo/cpu{i}" for i in range(n_blimps)]
         load(session, echo_keys, _step_payload, 1.0)
-        cpu0 = cpu_seconds(pids[-1])
-        load(session, echo_keys, _step_payload, seconds)
-        echoed = (cpu_seconds(pids[-1]) - cpu0) / (n_blimps * int(seconds / 0.25)) * 1e3
+        run = lambda: load(session, echo_keys, _step_payload, seconds)  # noqa: E731
+        echoed = _cpu_per_message(pids[-1], n_blimps, seconds, run)[1]
     return served, echoed, p99
 
 
@@ -212,7 +221,7 @@ def capacity(models: Path, model: str, levels: list[int], seconds: float, fleet:
     opened = service_session(models, model) if fleet == 1 else fleet_session(models, model, fleet)
     where = "one process" if fleet == 1 else f"{fleet} processes"
     with opened as session:
-        return ladder(lambda n: capacity_run(session, n, seconds, f"{model}-x{fleet}"), levels,
+        return ladder(lambda n: capacity_run(session, n, seconds, f"{model}-x{fleet}")[:2], levels,
                       f"{model:6s} GP-EKF, {where}")  # fmt: skip
 
 

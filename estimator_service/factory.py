@@ -276,8 +276,7 @@ _PF_DEFAULTS: dict[str, object] = {"roughen": 1.0, "roughen_cov": "kalman"}
 #: the learned models, whose sharp observation GPs collapse Table 1's weights (the GP-PFs lost
 #: whole test segments); Table 1's for the parametric models, where the bridge raised the RMS.
 #: Chosen by a rule fixed before its runs: docs/measurements.md#pf-bridged-update
-PF_UPDATE_RULES: dict[str, str] = {"param": "table1", "gp": "bridge", "egp": "bridge", "hetgp": "bridge",
-                                   "sparse": "bridge"}  # fmt: skip
+PF_UPDATE_RULES: dict[str, str] = {k: "table1" if k == "param" else "bridge" for k in MODEL_KINDS}
 
 
 def make_filter(

@@ -35,12 +35,14 @@ from agents.experiments.reproduce import ReproduceSettings, split_folds
 from agents.experiments.resume import trained
 from agents.sim import collect_flight
 from estimator_service.factory import build_filter
+from estimator_service.files import atomic_write_text
 from estimator_service.filters import GaussianBelief
+from estimator_service.filters.particle import UPDATE_RULES
 from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.tracking import _default_init_std, aggregate_rms, segments, track_flight
 from estimator_service.training import train_models
 
-RULES = ("table1", "bridge")
+RULES = UPDATE_RULES
 STREAMS = 3  # random streams per segment
 MEANS = ("rms", "mll", "nees", "coverage2_min")  # the figures averaged over a kind's runs
 
@@ -50,22 +52,30 @@ def settings(args: argparse.Namespace) -> ReproduceSettings:
     return replace(s, seed=args.seed, kinds=tuple(args.kinds))
 
 
+def _folds(s: ReproduceSettings) -> list:
+    """The (train, test) flights of the seed's folds, as the reproduce report splits them."""
+    return split_folds(collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world), s.folds)
+
+
+def _pf_segments(test, s: ReproduceSettings) -> list[slice]:
+    """The report's PF rows: each ``track_seconds`` segment's first ``pf_seconds``."""
+    seg = round(s.track_seconds / test.dt)
+    return segments(len(test), seg, min(seg, round(s.pf_seconds / test.dt)))
+
+
 def run(args: argparse.Namespace) -> list[dict]:
     """Train (or reuse) each fold's models and track its segments with both rules."""
     s = settings(args)
-    flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
-    rows = []
+    folds, rows = _folds(s), []
     for fold in args.folds:
-        train, test = split_folds(flight, s.folds)[fold]
+        train, test = folds[fold]
         folder = args.out / f"models_fold{fold}"
         if not trained(folder):
             train_models([train], folder, kinds=s.kinds, settings=s.train_settings(), seed=s.seed + fold)
-        seg = round(s.track_seconds / test.dt)
-        length = min(seg, round(s.pf_seconds / test.dt))
         for kind in s.kinds:
             for rule in RULES:
                 filt = build_filter("pf", kind, folder, n_particles=s.particles, update_rule=rule)
-                for i, rows_i in enumerate(segments(len(test), seg, length)):
+                for i, rows_i in enumerate(_pf_segments(test, s)):
                     for k in range(1 if args.quick else STREAMS):
                         rows.append(one(filt, test, rows_i, s.seed + k) | {
                             "fold": fold, "kind": kind, "rule": rule, "segment": i, "stream": s.seed + k,
@@ -102,11 +112,11 @@ def trace(args: argparse.Namespace) -> dict:
     """One run of ``--trace``, step by step (see the module's docstring)."""
     s = settings(args)
     fold, segment, stream = args.trace
-    flight = collect_flight(s.minutes * 60, seed=s.seed, env_kwargs=s.world)
-    test = split_folds(flight, s.folds)[fold][1]
-    seg = round(s.track_seconds / test.dt)
-    rows = segments(len(test), seg, min(seg, round(s.pf_seconds / test.dt)))[segment]
-    fl = test.select(np.arange(len(test))[rows])
+    test = _folds(s)[fold][1]
+    segs = _pf_segments(test, s)
+    if segment >= len(segs):
+        raise SystemExit(f"--trace: the fold has {len(segs)} segments, got segment {segment}")
+    fl = test.select(np.arange(len(test))[segs[segment]])
     filt = build_filter("pf", args.kinds[0], args.out / f"models_fold{fold}", n_particles=s.particles,
                         update_rule=args.rule)  # fmt: skip
     rng = np.random.default_rng(stream)
@@ -133,17 +143,34 @@ def _position(g: GaussianBelief, truth: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(g.mean[:3] - truth[:3]) * 1e3), float(sd * 1e3)
 
 
+def _count(v: str) -> int:
+    n = int(v)
+    if n < 0:
+        raise ValueError(v)
+    return n
+
+
+def _counts(v: str) -> list[int]:
+    return [_count(f) for f in v.split(",")]
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seed", type=int, required=True, help="the flight's seed (no report's: 0 and 1 are)")
+    p.add_argument("--seed", type=_count, required=True, help="the flight's seed (no report's: 0 and 1 are)")
     p.add_argument("--kinds", type=lambda v: v.split(","), default=["param", "gp", "egp"], help="model kinds")
-    p.add_argument("--folds", type=lambda v: [int(f) for f in v.split(",")], default=[0, 1], help="folds")
+    p.add_argument("--folds", type=_counts, default=[0, 1], help="folds (of 4; quick: of 2)")
     p.add_argument("--out", type=Path, required=True, help="folder for the models and rows.json")
     p.add_argument("--quick", action="store_true", help="a small version (smoke test)")
-    p.add_argument("--trace", type=lambda v: [int(f) for f in v.split(",")], default=None,
-                   help="FOLD,SEGMENT,STREAM: follow one run step by step")  # fmt: skip
+    p.add_argument(
+        "--trace", type=_counts, default=None, help="FOLD,SEGMENT,STREAM: follow one run step by step"
+    )
     p.add_argument("--rule", choices=RULES, default="table1", help="the update rule --trace follows")
     args = p.parse_args(argv)
+    nfolds = settings(args).folds
+    if any(f >= nfolds for f in args.folds) or (args.trace is not None and args.trace[0] >= nfolds):
+        p.error(f"--folds/--trace: a fold must be below {nfolds}")
+    if args.trace is not None and len(args.trace) != 3:
+        p.error(f"--trace: FOLD,SEGMENT,STREAM (three integers), got {args.trace}")
     if args.trace is not None:
         res = trace(args)
         print(json.dumps(res))
@@ -153,7 +180,7 @@ def main(argv: list[str] | None = None) -> dict:
     res = {"seed": args.seed, "folds": args.folds, "quick": args.quick, "summary": summary(rows),
            "seconds": round(time.perf_counter() - t0, 1)}  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "rows.json").write_text(json.dumps(rows, indent=1) + "\n")
+    atomic_write_text(args.out / "rows.json", json.dumps(rows, indent=1) + "\n")
     print(json.dumps(res))
     return res
 
