@@ -35,7 +35,8 @@ from estimator_service.plots import continuous, save_figure
 from estimator_service.progress import ProgressBar
 from estimator_service.service.client import EstimatorClient, free_port, open_session, services, spawn_service
 from estimator_service.tracking import group_rms
-from estimator_service.training import TrainSettings, progress_units, train_models
+from estimator_service.training import TrainSettings, train_models
+from estimator_service.work import part_weights
 from gpbf_env.camera import euler_to_matrix, outline_ellipses
 from gpbf_env.imaging import fit_ellipse_image, render_frame
 
@@ -211,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     models = args.out / "models"
     kinds = ("param", "egp")
     settings = TrainSettings(n_points=args.points, n_pseudo=30, restarts=1, max_iter=40)
-    bar = ProgressBar("train models", progress_units([flight], kinds, settings), unit="part")
+    bar = ProgressBar("train models", unit="part", weights=part_weights([flight], kinds, settings))
 
     def progress(kind: str, p) -> None:
         if p is None:

@@ -88,7 +88,8 @@ def add_log_options(p: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from estimator_service.training import TrainSettings, available_kinds, progress_units, train_models
+    from estimator_service.training import TrainSettings, available_kinds, train_models
+    from estimator_service.work import part_weights
 
     flights = [_read_log(p, args) for p in args.logs]
     settings = TrainSettings(
@@ -100,8 +101,8 @@ def run_train(args: argparse.Namespace) -> int:
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
     if "param" in avail and "param" not in kinds:
         kinds.insert(0, "param")
-    total = progress_units(flights, kinds, settings)
-    bar = ProgressBar("train", total, unit="part", enabled=not args.quiet)
+    weights = part_weights(flights, kinds, settings)  # each part's estimated seconds, for the ETA
+    bar = ProgressBar("train", unit="part", enabled=not args.quiet, weights=weights)
     iterations = {"n": 0}
 
     def progress(kind: str, p) -> None:

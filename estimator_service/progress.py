@@ -1,6 +1,8 @@
 """One progress display per long job: a bar with a total and an ETA in a terminal, plain
 periodic lines (``desc: 120/480 steps (25%), 3 s elapsed, ETA 9 s``) when the output is a
-file or a pipe, nothing with ``enabled=False``. The plain lines keep coming every
+file or a pipe, nothing with ``enabled=False``. Units of unequal cost take ``weights`` (each
+unit's estimated seconds): the percentage and the ETA then follow the weight done, the
+count still counts units. The plain lines keep coming every
 ``every_s`` seconds while a long unit of work reports nothing (a background timer), so a log
 never falls silent for minutes."""
 
@@ -10,9 +12,23 @@ import math
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from typing import TextIO
 
+import numpy as np
+
 __all__ = ["ProgressBar"]
+
+WEIGHT_STEPS = 1000  # a weighted terminal bar's resolution
+WEIGHTED_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}, {postfix}]"
+
+
+def _cumulative(weights: Sequence[float]) -> np.ndarray:
+    """``(len + 1,)`` running sums from 0, after checking every weight is finite and positive."""
+    w = np.asarray(weights, dtype=float)
+    if w.ndim != 1 or not len(w) or not (np.isfinite(w).all() and (w > 0).all()):
+        raise ValueError(f"weights must be a non-empty list of positive finite numbers, got {weights!r}")
+    return np.concatenate([[0.0], np.cumsum(w)])
 
 
 class ProgressBar:
@@ -24,15 +40,25 @@ class ProgressBar:
         Seconds between two plain lines when the stream is not a terminal (also while no
         progress is reported, from a background thread until :meth:`close` or :meth:`stop`:
         use the bar as a context manager so an error ends it too).
+    weights: (total,)
+        Each unit's estimated cost (positive, any scale; e.g.
+        :func:`estimator_service.work.part_weights`): the share done and the ETA are the
+        weight of the units done over the whole weight. The total is then ``len(weights)``.
     """
 
     def __init__(
         self, desc: str, total: int | None = None, *, unit: str = "step", enabled: bool = True,
-        stream: TextIO | None = None, every_s: float = 10.0,
+        stream: TextIO | None = None, every_s: float = 10.0, weights: Sequence[float] | None = None,
     ) -> None:  # fmt: skip
         if not (math.isfinite(every_s) and every_s > 0):
             raise ValueError(f"every_s must be a positive number of seconds, got {every_s!r}")
+        self._cum = None if weights is None else _cumulative(weights)
+        if self._cum is not None:
+            if total is not None and total != len(weights):
+                raise ValueError(f"total {total} differs from the {len(weights)} weights")
+            total = len(weights)
         self.desc, self.total, self.unit, self.n = desc, total, unit, 0
+        self._weight_done = 0.0  # with weights: the weight of the units done
         self._stream = stream or sys.stderr
         self._enabled, self._every = enabled, every_s
         self._t0 = self._last = time.monotonic()
@@ -42,7 +68,11 @@ class ProgressBar:
         if enabled and getattr(self._stream, "isatty", lambda: False)():
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total, desc=desc, unit=unit, file=self._stream, dynamic_ncols=True)
+            if self._cum is None:
+                self._bar = tqdm(total=total, desc=desc, unit=unit, file=self._stream, dynamic_ncols=True)
+            else:  # the bar's length and rate in weight: the count of units goes in the postfix
+                self._bar = tqdm(total=WEIGHT_STEPS, desc=desc, file=self._stream, dynamic_ncols=True,
+                                 bar_format=WEIGHTED_FORMAT)  # fmt: skip
         elif enabled:
             threading.Thread(target=self._heartbeat, name=f"progress {desc}", daemon=True).start()
 
@@ -56,12 +86,24 @@ class ProgressBar:
     def update_to(self, n: int, total: int | None = None, postfix: str = "") -> None:
         """Set the units done (and the total, and a short status text)."""
         if total is not None:
+            if self._cum is not None and total != self.total:
+                raise ValueError(f"total {total} differs from the {self.total} weights")
             self.total = total
         self._postfix = postfix or self._postfix
+        if self._cum is not None:
+            self._weight_done = float(self._cum[min(max(n, 0), len(self._cum) - 1)])
+        elif self._bar is not None and total is not None and self._bar.total != total:
+            self._bar.total = total
+        self._show(n, postfix)
+
+    def _show(self, n: int, postfix: str) -> None:
         delta, self.n = n - self.n, n
         if self._bar is not None:
-            if total is not None and self._bar.total != total:
-                self._bar.total = total
+            if self._cum is not None:
+                status = f"{self._count()} {self.unit}s" + (f", {postfix}" if postfix else "")
+                self._bar.set_postfix_str(status, refresh=False)
+                self._bar.update(round(WEIGHT_STEPS * self._fraction()) - self._bar.n)
+                return
             if postfix:
                 self._bar.set_postfix_str(postfix, refresh=False)
             self._bar.update(delta)
@@ -70,16 +112,33 @@ class ProgressBar:
                 if time.monotonic() - self._last >= self._every:  # the heartbeat may have printed
                     self._line()
 
-    def advance(self, k: int = 1, postfix: str = "") -> None:
-        self.update_to(self.n + k, postfix=postfix)
+    def advance(self, k: int = 1, postfix: str = "", *, index: int | None = None) -> None:
+        """``k`` more units done; with weights and ``index``, the one unit ``index`` (units
+        that end out of order, e.g. in worker processes), else the next ``k`` in order."""
+        if index is None or self._cum is None:
+            self.update_to(self.n + k, postfix=postfix)
+            return
+        if not 0 <= index < len(self._cum) - 1:
+            raise ValueError(f"index {index} is not one of the {len(self._cum) - 1} weighted units")
+        self._postfix = postfix or self._postfix
+        self._weight_done += float(self._cum[index + 1] - self._cum[index])
+        self._show(self.n + 1, postfix)
+
+    def _count(self) -> str:
+        return f"{self.n}/{self.total}" if self.total else str(self.n)
+
+    def _fraction(self) -> float:
+        """The share done: units, or with weights the weight of the units done."""
+        if self._cum is not None:
+            return min(1.0, self._weight_done / float(self._cum[-1]))
+        return min(1.0, self.n / self.total) if self.total else 0.0
 
     def _line(self) -> None:
         self._last = time.monotonic()
         elapsed = self._last - self._t0
-        done = f"{self.n}/{self.total}" if self.total else str(self.n)
-        text = f"{self.desc}: {done} {self.unit}s"
+        text = f"{self.desc}: {self._count()} {self.unit}s"
         if self.total:
-            frac = min(1.0, self.n / self.total)
+            frac = self._fraction()
             eta = f"{elapsed * (1 - frac) / frac:.0f} s" if frac > 0 else "?"
             text += f" ({100 * frac:.0f}%), {elapsed:.0f} s elapsed, ETA {eta}"
         else:
@@ -95,8 +154,8 @@ class ProgressBar:
             self._bar = None
         with self._lock:
             if self._enabled:
-                done = f"{self.n}/{self.total}" if self.total else str(self.n)
-                print(f"{self.desc}: stopped at {done} {self.unit}s: {reason}", file=self._stream, flush=True)
+                print(f"{self.desc}: stopped at {self._count()} {self.unit}s: {reason}", file=self._stream,
+                      flush=True)  # fmt: skip
             self._enabled = False
         self._done.set()
 

@@ -35,6 +35,7 @@ __all__ = [
     "mean_sd",
     "reliability",
     "score",
+    "segment_rows",
     "segments",
     "state_error",
     "track_flight",
@@ -377,6 +378,11 @@ def segments(n_rows: int, seg: int, length: int | None = None) -> list[slice]:
     ``length`` rows (all ``seg`` when None); the whole flight when it is shorter than one."""
     use = seg if length is None else length
     return [slice(a, a + use) for a in range(0, n_rows - seg + 1, seg)] or [slice(None)]
+
+
+def segment_rows(n_rows: int, seg: int, length: int | None = None) -> int:
+    """The rows :func:`segments` ``(n_rows, seg, length)`` cover together."""
+    return sum(len(range(n_rows)[r]) for r in segments(n_rows, seg, length))
 
 
 def mean_sd(runs: list[dict[str, float]]) -> dict[str, list[float]]:

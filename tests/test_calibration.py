@@ -34,6 +34,7 @@ from estimator_service.models.calibration import (
 )
 from estimator_service.store import seal
 from estimator_service.training import TrainSettings, progress_units, train_models
+from estimator_service.work import part_weights
 
 
 def test_scaled_model_scales_only_the_variance() -> None:
@@ -566,4 +567,7 @@ def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> N
                for part in ("first pass", "second pass", "noise chosen")]  # fmt: skip
     assert done == [*fits, *folds, *choices]
     assert progress_units([flight], ["param", "gp"], s) == len(done)
+    weights = part_weights([flight], ["param", "gp"], s)  # one estimated cost per part, in order
+    assert len(weights) == len(done) and all(w > 0 for w in weights)
+    assert len(part_weights([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0))) == 1
     assert progress_units([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0)) == 1

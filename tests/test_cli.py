@@ -164,6 +164,39 @@ def test_plain_progress_keeps_printing_while_a_unit_of_work_reports_nothing() ->
     assert out.getvalue().splitlines() == silent
 
 
+def test_weighted_progress_shows_the_share_of_the_weight_done_and_refuses_bad_weights() -> None:
+    """Units of unequal cost: the percentage (and so the ETA) is the weight done over the
+    whole weight, while the count stays in units; weights that cannot be shares are refused."""
+    import io
+
+    from estimator_service.progress import ProgressBar
+
+    out = io.StringIO()
+    with ProgressBar("train", unit="part", stream=out, every_s=3600, weights=[3.0, 1.0, 96.0]) as bar:
+        bar.advance()
+        bar._line()  # what the heartbeat prints
+        bar.advance()
+        bar._line()
+        bar.advance()
+    lines = out.getvalue().splitlines()
+    assert [line.split(",")[0] for line in lines] == [
+        "train: 1/3 parts (3%)", "train: 2/3 parts (4%)", "train: 3/3 parts (100%)"]  # fmt: skip
+    out = io.StringIO()  # units ending out of order (worker processes) add their own weight
+    with ProgressBar("run", unit="unit", stream=out, every_s=3600, weights=[1.0, 9.0]) as bar:
+        bar.advance(index=1)
+        bar._line()
+        bar.advance(index=0)
+        with pytest.raises(ValueError, match="index 2 is not one of the 2 weighted units"):
+            bar.advance(index=2)
+    assert [line.split(",")[0] for line in out.getvalue().splitlines()] == [
+        "run: 1/2 units (90%)", "run: 2/2 units (100%)"]  # fmt: skip
+    for bad in ([], [1.0, 0.0], [1.0, float("nan")], [[1.0]]):
+        with pytest.raises(ValueError, match="weights must be"):
+            ProgressBar("x", weights=bad, enabled=False)
+    with pytest.raises(ValueError, match="total 2 differs from the 3 weights"):
+        ProgressBar("x", 2, weights=[1.0, 1.0, 1.0], enabled=False)
+
+
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
     import io
 

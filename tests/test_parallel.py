@@ -36,13 +36,14 @@ def _write(path: Path) -> int:
 
 def test_workers_give_the_serial_results_in_order() -> None:
     units = [partial(_draw, seed) for seed in range(5)]
-    ticks: list[int] = []
-    serial = run_all(units, 1, lambda: ticks.append(1))
-    pooled = run_all(units, 2, lambda: ticks.append(2))
+    ticks: list[tuple[int, int]] = []
+    serial = run_all(units, 1, lambda i: ticks.append((1, i)))
+    pooled = run_all(units, 2, lambda i: ticks.append((2, i)))
     assert [v for _, v in pooled] == [v for _, v in serial]
     assert {pid for pid, _ in serial} == {os.getpid()}
     assert os.getpid() not in {pid for pid, _ in pooled}  # they ran in other processes
-    assert ticks == [1] * 5 + [2] * 5
+    assert ticks[:5] == [(1, i) for i in range(5)]  # each tick names the unit that finished
+    assert sorted(ticks[5:]) == [(2, i) for i in range(5)]
     for threads in run_all([_blas_threads, _blas_threads], 2):
         assert threads and set(threads) == {1}  # one BLAS thread per worker
 
@@ -61,7 +62,7 @@ def test_each_unit_ticks_as_it_ends_not_when_all_have(tmp_path: Path) -> None:
     """The first unit's tick writes the file the second waits for: ticks held back until
     every unit ended (waiting for the first exception, i.e. for all) leave it waiting."""
     flag = tmp_path / "ticked"
-    seen = run_all([partial(_write, tmp_path / "first"), partial(_wait_for, flag)], 2, lambda: flag.touch())
+    seen = run_all([partial(_write, tmp_path / "first"), partial(_wait_for, flag)], 2, lambda i: flag.touch())
     assert seen == [1, True]
 
 

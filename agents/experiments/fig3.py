@@ -21,8 +21,9 @@ import numpy as np
 from agents.experiments.resume import kept
 from estimator_service.factory import build_filter
 from estimator_service.flight import Flight
-from estimator_service.tracking import aggregate_rms, mean_sd, segments, track_flight
+from estimator_service.tracking import aggregate_rms, mean_sd, segment_rows, segments, track_flight
 from estimator_service.training import TrainSettings, train_models
+from estimator_service.work import part_weights, track_seconds
 
 __all__ = [
     "Fig3Run",
@@ -78,10 +79,23 @@ class Fig3Run:
     seg: int
     cache: Path | None
 
+    @property
+    def kept_at(self) -> Path | None:
+        """Where the run's scores are kept (None: not kept)."""
+        return None if self.cache is None else self.cache / f"{self.curve}_{self.size}_{self.repeat}.json"
+
     def __call__(self) -> dict[str, dict[str, float]]:
-        if self.cache is None:
+        if self.kept_at is None:
             return self._run()
-        return kept(self.cache / f"{self.curve}_{self.size}_{self.repeat}.json", self._run)
+        return kept(self.kept_at, self._run)
+
+    def seconds(self) -> float:
+        """Estimated seconds of the run (:mod:`estimator_service.work`); 0 when kept."""
+        if self.kept_at is not None and self.kept_at.exists():
+            return 0.0
+        steps = segment_rows(len(self.test), self.seg)
+        track = sum(track_seconds([self.train], self.kind, self.settings, f, steps) for f in FILTERS)
+        return sum(part_weights([self.train], [self.kind], self.settings)) + track
 
     def _run(self) -> dict[str, dict[str, float]]:
         with tempfile.TemporaryDirectory(prefix="gpbf-fig3-") as tmp:

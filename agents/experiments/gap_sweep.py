@@ -63,7 +63,7 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
         units += [partial(sweep_unit, out, strength, i, train, test, s)
                   for i, (train, test) in enumerate(split_folds(flight, s.folds))]  # fmt: skip
     with ProgressBar("gap sweep", len(units), unit="fold", enabled=progress) as bar:
-        scores = run_all(units, jobs, bar.advance)
+        scores = run_all(units, jobs, lambda _: bar.advance())
     table: dict[str, dict[str, float]] = {}
     for j, strength in enumerate(strengths):
         track: dict[str, list] = {}

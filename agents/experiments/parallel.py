@@ -54,9 +54,9 @@ def _exit_with(parent: int) -> None:
 
 
 def run_all(
-    units: Sequence[Callable[[], T]], jobs: int = 1, tick: Callable[[], None] | None = None
+    units: Sequence[Callable[[], T]], jobs: int = 1, tick: Callable[[int], None] | None = None
 ) -> list[T]:
-    """Each unit's result, in the order given; ``tick()`` after each finishes.
+    """Each unit's result, in the order given; ``tick(i)`` after unit ``i`` finishes.
 
     ``jobs`` 1 runs them here, one after the other; more start that many worker processes
     (at most one per unit and one per core), each with single-threaded BLAS, each ending when this process
@@ -66,10 +66,10 @@ def run_all(
     check_jobs(jobs)
     if jobs == 1 or len(units) <= 1:
         out = []
-        for unit in units:
+        for i, unit in enumerate(units):
             out.append(unit())
             if tick:
-                tick()
+                tick(i)
         return out
     ctx = multiprocessing.get_context("forkserver" if os.name == "posix" else "spawn")
     workers = min(jobs, len(units), os.cpu_count() or 1)  # memory grows with workers, not speed
@@ -77,6 +77,7 @@ def run_all(
         workers, mp_context=ctx, initializer=_worker_start, initargs=(os.getpid(),)
     ) as pool:
         futures = [pool.submit(unit) for unit in units]
+        index = {f: i for i, f in enumerate(futures)}
         pending = set(futures)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)  # a tick as each ends
@@ -85,5 +86,5 @@ def run_all(
                     pool.shutdown(wait=True, cancel_futures=True)
                     raise f.exception()  # type: ignore[misc]
                 if tick:
-                    tick()
+                    tick(index[f])
         return [f.result() for f in futures]

@@ -40,11 +40,13 @@ from estimator_service.tracking import (
     group_mean_norm,
     group_rms,
     mean_sd,
+    segment_rows,
     segments,
     state_error,
     track_flight,
 )
 from estimator_service.training import TrainSettings, prediction_data, train_models
+from estimator_service.work import part_weights, track_seconds
 
 __all__ = ["ReproduceSettings", "reproduce", "split_folds"]
 
@@ -157,8 +159,7 @@ def one_step_errors(folder: Path, test: Flight, kind: str) -> dict[str, float]:
 def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: str) -> dict[str, float]:
     """Tables 7-9 and consistency: scores averaged over test segments of ``track_seconds``."""
     f = build_filter(filt, kind, folder, **({"n_particles": s.particles} if filt == "pf" else {}))
-    seg = round(s.track_seconds / test.dt)
-    length = min(seg, round(s.pf_seconds / test.dt)) if filt == "pf" else seg
+    seg, length = _segment_plan(test, s, filt)
     rows = segments(len(test), seg, length)
     with single_threaded_blas() if filt == "pf" else nullcontext():  # docs/measurements.md#one-blas-thread
         scores = [track_flight(f, test, rows=r, rng=np.random.default_rng(s.seed)).scores() for r in rows]
@@ -168,6 +169,12 @@ def tracking(folder: Path, test: Flight, s: ReproduceSettings, filt: str, kind: 
     out["aggregate_rms"] = float(np.mean([aggregate_rms(sc) for sc in scores]))
     out["steps"] = length
     return out
+
+
+def _segment_plan(test: Flight, s: ReproduceSettings, filt: str) -> tuple[int, int]:
+    """Rows per test segment and rows tracked of each (the PF only its first ``pf_seconds``)."""
+    seg = round(s.track_seconds / test.dt)
+    return seg, min(seg, round(s.pf_seconds / test.dt)) if filt == "pf" else seg
 
 
 NO_LEFT_TURNS = "models_no_left_turns"  # Fig. 4's models, beside the folds'
@@ -300,8 +307,9 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     ]
     fig3 = _fig3_runs(folds[0], s, out)
     units += [*fig3, partial(train_no_left_turns, out, folds[0][0], s), partial(table10_unit, out, s)]
-    with ProgressBar("reproduce", len(units), unit="unit", enabled=progress) as bar:
-        done = run_all(units, jobs, bar.advance)
+    weights = _unit_seconds(out, folds, fig3, s)
+    with ProgressBar("reproduce", unit="unit", enabled=progress, weights=weights) as bar:
+        done = run_all(units, jobs, lambda i: bar.advance(index=i))
     fold_scores, t10 = done[: len(folds)], done[-1]
     results = {
         "fig3": _plot_fig3(fig3, done[len(folds) : len(folds) + len(fig3)], out),
@@ -329,6 +337,31 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
 
     write_report(out, results)
     return results
+
+
+KEPT_S = 0.5  # a unit whose results the folder keeps: read back
+TABLE10_PARTICLE_S = 0.05  # Table 10's seconds per particle (25.4 s with 500, 2026-12-05)
+
+
+def _unit_seconds(out: Path, folds: list, fig3: list, s: ReproduceSettings) -> list[float]:
+    """Each unit's estimated seconds (:mod:`estimator_service.work`), in the units' order, so
+    the progress display's share done and ETA follow time; what ``out`` keeps is nearly free."""
+    ts = s.train_settings()
+
+    def fold(i: int, train: Flight, test: Flight) -> float:
+        folder = out / f"models_fold{i}"
+        total = 0.0 if trained(folder) else sum(part_weights([train], s.kinds, ts))
+        if not fold_scores_path(folder).exists():
+            for f in s.filters:
+                steps = segment_rows(len(test), *_segment_plan(test, s, f))
+                total += sum(track_seconds([train], k, ts, f, steps, s.particles) for k in s.kinds)
+        return total
+
+    train0 = folds[0][0]
+    left = 0.0 if trained(out / NO_LEFT_TURNS) else sum(part_weights([train0], ["param", "gp"], ts))
+    t10 = TABLE10_PARTICLE_S * s.particles if s.landmark and not (out / "table10.json").exists() else 0.0
+    units = [fold(i, *f) for i, f in enumerate(folds)] + [run.seconds() for run in fig3] + [left, t10]
+    return [KEPT_S + w for w in units]
 
 
 def _fig3_runs(fold: tuple[Flight, Flight], s: ReproduceSettings, out: Path) -> list:
