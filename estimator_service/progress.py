@@ -20,7 +20,8 @@ import numpy as np
 __all__ = ["ProgressBar"]
 
 WEIGHT_STEPS = 1000  # a weighted terminal bar's resolution
-WEIGHTED_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}, {postfix}]"
+#: a weighted terminal bar (tqdm writes ", " before a postfix)
+WEIGHTED_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}{postfix}]"
 
 
 def _cumulative(weights: Sequence[float]) -> np.ndarray:
@@ -100,7 +101,7 @@ class ProgressBar:
         delta, self.n = n - self.n, n
         if self._bar is not None:
             if self._cum is not None:
-                status = f"{self._count()} {self.unit}s" + (f", {postfix}" if postfix else "")
+                status = f"{self._count()} {self.unit}s" + (f", {self._postfix}" if self._postfix else "")
                 self._bar.set_postfix_str(status, refresh=False)
                 self._bar.update(round(WEIGHT_STEPS * self._fraction()) - self._bar.n)
                 return

@@ -190,6 +190,16 @@ def test_weighted_progress_shows_the_share_of_the_weight_done_and_refuses_bad_we
             bar.advance(index=2)
     assert [line.split(",")[0] for line in out.getvalue().splitlines()] == [
         "run: 1/2 units (90%)", "run: 2/2 units (100%)"]  # fmt: skip
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    out = Terminal()  # a terminal's bar: the percentage by weight, the count of units beside it
+    with ProgressBar("train", unit="part", stream=out, weights=[3.0, 1.0, 96.0]) as bar:
+        bar.advance(postfix="gp done")
+        bar.advance()
+    assert "4%" in out.getvalue() and "2/3 parts, gp done]" in out.getvalue()
     for bad in ([], [1.0, 0.0], [1.0, float("nan")], [[1.0]]):
         with pytest.raises(ValueError, match="weights must be"):
             ProgressBar("x", weights=bad, enabled=False)
