@@ -185,6 +185,27 @@ def _same_up_to_rounding(fast, slow, q: np.ndarray, mean_rtol: float = 0.0) -> N
     np.testing.assert_allclose(fast.predict(q).mean, slow.predict(q).mean, rtol=mean_rtol, atol=mean_rtol)
 
 
+@pytest.mark.parametrize("columns", [1, 2, 5])
+def test_tri_solve_matches_the_solve_and_overwrites_a_fortran_right_hand_side(columns: int) -> None:
+    """``tri_solve`` for one right-hand side (BLAS ``trsv``), two and more (LAPACK): the
+    solution of ``L X = B``, and with ``overwrite_b`` a Fortran-ordered ``B`` is solved in
+    place (no copy of the skinny kernel block)."""
+    from estimator_service.gp.linalg import tri_solve
+
+    rng = np.random.default_rng(columns)
+    lower = np.asfortranarray(np.tril(rng.normal(size=(7, 7))) + 7.0 * np.eye(7))
+    b = np.asfortranarray(rng.normal(size=(7, columns)))
+    want = np.linalg.solve(lower, b)
+    np.testing.assert_allclose(tri_solve(lower, b.copy(order="F")), want, rtol=1e-12, atol=1e-14)
+    inplace = b.copy(order="F")
+    got = tri_solve(lower, inplace, overwrite_b=True)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    assert got.shape == (7, columns) and np.shares_memory(got, inplace)
+    kept = b.copy(order="F")
+    tri_solve(lower, kept)
+    np.testing.assert_array_equal(kept, b)  # without overwrite_b the right-hand side is left as it was
+
+
 @pytest.mark.parametrize("queries", [1, 7, 200])  # 200: the batch path's row blocks
 def test_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(queries: int) -> None:
     """The explicit ``L^-1`` path against the triangular solve, where it is hardest: noise
