@@ -14,14 +14,13 @@ their ratios matter to a display.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
-from estimator_service.factory import ENHANCED_KINDS
+from estimator_service.crossfit import calibration_folds
+from estimator_service.factory import ENHANCED_KINDS, observation_parts
+from estimator_service.flight import Flight
+from estimator_service.gp.inverse import BLOCKS
 from estimator_service.matching import LIKELIHOOD_FACTORS, PROCESS_FACTORS, REFINE_FACTORS
-
-if TYPE_CHECKING:  # training imports this module
-    from estimator_service.flight import Flight
-    from estimator_service.training import TrainSettings
+from estimator_service.training import TrainSettings
 
 __all__ = ["fit_seconds", "part_weights", "track_seconds"]
 
@@ -56,8 +55,6 @@ CHOICE_CANDIDATES = (1 + len(LIKELIHOOD_FACTORS) + len(PROCESS_FACTORS), len(REF
 def _outputs(flights: Sequence[Flight]) -> list[tuple[int, int]]:
     """``(outputs, training points)`` of each GP a kind fits: the prediction GP's state
     outputs on the transitions, each observation part's outputs on its readings."""
-    from estimator_service.factory import observation_parts
-
     system = flights[0].system
     out = [(system.state_dim, sum(len(f.transition_rows()) for f in flights))]
     for ks in observation_parts(system).values():
@@ -105,7 +102,8 @@ def _choice_seconds(flights: Sequence[Flight], kind: str, s: TrainSettings, step
         per_step, per_candidate = per_step + PARAM_STEP_S, per_candidate + PARAM_CANDIDATE_S
     if kind in EXACT_KINDS:
         sizes = [(outputs, min(s.n_points, rows)) for outputs, rows in _outputs(flights)]
-        per_step += BYTE_S * sum(outputs * n * n * 8 * 7 / 12 for outputs, n in sizes)
+        held = (BLOCKS + 1) / (2 * BLOCKS)  # the share of the square the row blocks hold
+        per_step += BYTE_S * sum(outputs * n * n * 8 * held for outputs, n in sizes)
         per_candidate += POINT_S * sum(outputs * n for outputs, n in sizes)
     return [steps * (per_step + per_candidate * c) for c in CHOICE_CANDIDATES]
 
@@ -130,8 +128,6 @@ def part_weights(flights: Sequence[Flight], kinds: Sequence[str], s: TrainSettin
     also carrying the parametric fit before it), each fold's refits (with
     ``calibration_refit``) and calibration of each kind, then each kind's three choice
     parts."""
-    from estimator_service.crossfit import calibration_folds
-
     gp = [k for k in kinds if k != "param"]
     weights = [fit_seconds(flights, k, s) for k in gp]
     parametric = any(k == "param" or k in ENHANCED_KINDS for k in kinds)
