@@ -35,6 +35,7 @@ import argparse
 import fnmatch
 import hashlib
 import json
+import os
 import platform
 import shutil
 import subprocess
@@ -80,10 +81,19 @@ def fingerprint(root: Path = Path(".")) -> str:
     return h.hexdigest()
 
 
+#: one BLAS thread per process: mutmut's children run side by side, one per core, and its
+#: timeout is a CPU-time limit. With OpenBLAS's default two threads each, a mutant that only
+#: changes a debug log's format string (``gp.base.x_report__mutmut_1``, whose 29 tests pass in
+#: 9.8 s and 15 CPU-s alone) was stopped as timed out after 31 s with another child beside it
+#: (2026-12-05): oversubscribed threads spend CPU time waiting.
+ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def _mutmut(max_children: int, names: list[str]) -> None:
-    """``run_mutmut.py run`` in its own process; stops this script if it fails."""
+    """``run_mutmut.py run`` in its own process (one BLAS thread, :data:`ONE_THREAD`); stops
+    this script if it fails."""
     cmd = [sys.executable, str(HERE / "run_mutmut.py"), "run", "--max-children", str(max_children), *names]
-    if subprocess.run(cmd).returncode != 0:
+    if subprocess.run(cmd, env={**os.environ, **ONE_THREAD}).returncode != 0:
         raise SystemExit("mutate_sample.py: mutmut failed (see above); the results so far are kept")
 
 
