@@ -81,11 +81,8 @@ def fingerprint(root: Path = Path(".")) -> str:
     return h.hexdigest()
 
 
-#: one BLAS thread per process: mutmut's children run side by side, one per core, and its
-#: timeout is a CPU-time limit. With OpenBLAS's default two threads each, a mutant that only
-#: changes a debug log's format string (``gp.base.x_report__mutmut_1``, whose 29 tests pass in
-#: 9.8 s and 15 CPU-s alone) was stopped as timed out after 31 s with another child beside it
-#: (2026-12-05): oversubscribed threads spend CPU time waiting.
+#: one BLAS thread per process: mutmut's children run side by side, one per core, and are
+#: stopped by CPU-time limits; two OpenBLAS threads in each would oversubscribe the cores.
 ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
