@@ -35,7 +35,6 @@ import argparse
 import fnmatch
 import hashlib
 import json
-import os
 import platform
 import shutil
 import subprocess
@@ -81,16 +80,10 @@ def fingerprint(root: Path = Path(".")) -> str:
     return h.hexdigest()
 
 
-#: one BLAS thread per process: mutmut's children run side by side, one per core, and are
-#: stopped by CPU-time limits; two OpenBLAS threads in each would oversubscribe the cores.
-ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
 def _mutmut(max_children: int, names: list[str]) -> None:
-    """``run_mutmut.py run`` in its own process (one BLAS thread, :data:`ONE_THREAD`); stops
-    this script if it fails."""
+    """``run_mutmut.py run`` in its own process; stops this script if it fails."""
     cmd = [sys.executable, str(HERE / "run_mutmut.py"), "run", "--max-children", str(max_children), *names]
-    if subprocess.run(cmd, env={**os.environ, **ONE_THREAD}).returncode != 0:
+    if subprocess.run(cmd).returncode != 0:
         raise SystemExit("mutate_sample.py: mutmut failed (see above); the results so far are kept")
 
 
