@@ -6,10 +6,11 @@ in mutmut's own process (its clean and coverage runs happen there) and that ends
 twice on this repository (``KeyError: 25787`` and ``29124``, both runs lost). Here such a
 child is reaped and skipped; every worker's result is read as before.
 
-mutmut's ``process_isolation = "forkserver"`` avoids the problem too (checked on the test's
-tiny project) but has not been run on this repository's suite; the committed scores were
-measured with the fork runner. The repair reads the runner's private fields, so it refuses
-to run on a mutmut whose runner lacks them.
+``[tool.mutmut]`` now sets ``process_isolation = "forkserver"`` (mutmut's fork server, which
+this repair does not touch): the fork runner's children inherited the zenoh sessions of
+mutmut's own test runs and hung closing them (``../gp_models_base/README.md``). The
+scores committed before 2026-12-05 16:00 UTC were measured with the fork runner. The repair
+reads the runner's private fields, so it refuses to run on a mutmut whose runner lacks them.
 
 Run from the repository root with mutmut's own arguments: ``python
 docs/results/mutation/run_mutmut.py run --max-children 2``.
