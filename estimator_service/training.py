@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.crossfit import calibration_folds, cross_fit
+from estimator_service.crossfit import CHOICE_UNITS, calibration_folds, cross_fit
 from estimator_service.factory import (
     ENHANCED_KINDS,
     MODEL_KINDS,
@@ -155,14 +155,13 @@ def progress_units(
     for these arguments: one per GP kind fitted; with noise calibration, per fold one per
     kind calibrated (and with ``calibration_refit`` one per GP kind refitted), then per kind
     the noise choice's two passes and its adaptation check
-    (:func:`~estimator_service.crossfit.cross_fit`). A progress display's total: one per
-    estimated cost of :func:`~estimator_service.work.part_weights`, which owns the order."""
-    from estimator_service.work import part_weights  # work imports this module
-
+    (:func:`~estimator_service.crossfit.cross_fit`). A progress display's total."""
     kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds or ()
-    if not flights:
-        return sum(k != "param" for k in kinds)
-    return len(part_weights(flights, kinds, settings))
+    gp = sum(k != "param" for k in kinds)
+    folds = len(calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds))
+    if not folds:
+        return gp
+    return gp + folds * (len(kinds) + (gp if settings.calibration_refit else 0)) + CHOICE_UNITS * len(kinds)
 
 
 def _check_flights(flights: Sequence[Flight], kinds: Sequence[str]) -> System:
