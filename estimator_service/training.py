@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.crossfit import CHOICE_UNITS, calibration_folds, cross_fit
+from estimator_service.crossfit import calibration_folds, cross_fit
 from estimator_service.factory import (
     ENHANCED_KINDS,
     MODEL_KINDS,
@@ -67,7 +67,6 @@ __all__ = [
     "TrainSettings",
     "available_kinds",
     "prediction_data",
-    "progress_units",
     "train_models",
 ]
 
@@ -148,22 +147,6 @@ def available_kinds(system: System) -> tuple[str, ...]:
     return tuple(k for k in MODEL_KINDS if k != "param" and k not in ENHANCED_KINDS)
 
 
-def progress_units(
-    flights: Sequence[Flight], kinds: Sequence[str] | None = None, settings: TrainSettings = TrainSettings()
-) -> int:
-    """The units of work :func:`train_models` reports as done (``on_progress(label, None)``)
-    for these arguments: one per GP kind fitted; with noise calibration, per fold one per
-    kind calibrated (and with ``calibration_refit`` one per GP kind refitted), then per kind
-    the noise choice's two passes and its adaptation check
-    (:func:`~estimator_service.crossfit.cross_fit`). A progress display's total."""
-    kinds = available_kinds(flights[0].system) if kinds is None and flights else kinds or ()
-    gp = sum(k != "param" for k in kinds)
-    folds = len(calibration_folds(flights, settings.calibration_seconds, settings.calibration_folds))
-    if not folds:
-        return gp
-    return gp + folds * (len(kinds) + (gp if settings.calibration_refit else 0)) + CHOICE_UNITS * len(kinds)
-
-
 def _check_flights(flights: Sequence[Flight], kinds: Sequence[str]) -> System:
     if not flights:
         raise ValueError("no flights to train on")
@@ -216,8 +199,9 @@ def train_models(
 
     ``exclude(inputs) -> mask`` drops prediction training rows (e.g. tail pushing left,
     paper Fig. 4). ``on_progress(label, progress)`` reports optimiser iterations, and with
-    ``progress`` None that the unit of work ``label`` is done (:func:`progress_units` of
-    them: the fits, then each fold's calibration, then each kind's noise choice).
+    ``progress`` None that the unit of work ``label`` is done (as many as
+    :func:`~estimator_service.work.part_weights` weighs: the fits, then each fold's
+    calibration, then each kind's noise choice).
     Randomness: the training subsets come from one stream of ``seed`` and each kind's
     optimiser from its own, so a kind's models do not depend on which other kinds are
     trained beside it. ``out_dir`` is replaced whole when training succeeds and left as it

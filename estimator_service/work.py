@@ -2,7 +2,7 @@
 follow time rather than the count of parts.
 
 :func:`~estimator_service.training.train_models` reports its parts as done in a fixed
-order (:func:`~estimator_service.training.progress_units`), and the parts differ by two
+order (one weight each here, :func:`part_weights`), and the parts differ by two
 orders of magnitude: on the README's 20-minute flight a heteroscedastic fit took 73 s and
 one fold's conditioning of a kind about a second. Counted as equal parts, the ETA shown
 was 2,225 s at 120 s into a 231-s run. Each weight here is the part's estimated seconds
@@ -49,6 +49,7 @@ BYTE_S, POINT_S = 2.0e-11, 1.4e-8
 EKF_STEP_S, UKF_STEP_S, LIGHT_STEP_S = 3.0e-3, 4.5e-3, 6.0e-4
 PF_PARTICLE_S, PF_POINT_S = 5.0e-6, 1.35e-8
 EXACT_KINDS = ("gp", "egp", "hetgp")  # kinds whose GPs keep n x n inverse factors
+#: candidates each of a kind's crossfit.CHOICE_UNITS choice parts scores (two passes, the adaptation check)
 CHOICE_CANDIDATES = (1 + len(LIKELIHOOD_FACTORS) + len(PROCESS_FACTORS), len(REFINE_FACTORS), 1)
 
 
@@ -123,8 +124,8 @@ def track_seconds(
 
 def part_weights(flights: Sequence[Flight], kinds: Sequence[str], s: TrainSettings) -> list[float]:
     """Estimated seconds of each part :func:`~estimator_service.training.train_models`
-    reports as done, in its order (as many as
-    :func:`~estimator_service.training.progress_units`): the GP kinds' fits (the first
+    reports as done, in its order, one per part (their number is a progress display's
+    total): the GP kinds' fits (the first
     also carrying the parametric fit before it), each fold's refits (with
     ``calibration_refit``) and calibration of each kind, then each kind's three choice
     parts."""

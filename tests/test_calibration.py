@@ -33,7 +33,7 @@ from estimator_service.models.calibration import (
     write_noise_scales,
 )
 from estimator_service.store import seal
-from estimator_service.training import TrainSettings, progress_units, train_models
+from estimator_service.training import TrainSettings, train_models
 from estimator_service.work import part_weights
 
 
@@ -551,7 +551,7 @@ def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format
 def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> None:
     """Progress counts the fits, every fold's calibration of every kind (and with refitting
     the folds' fits) and each kind's noise choice (two passes and the adaptation check): the
-    units reported as done are exactly ``progress_units``, in that order, so a display
+    units reported as done are exactly those ``part_weights`` weighs, in that order, so a display
     reaches 100 % when training returns and not before the calibration has run."""
     flight = collect_flight(60, seed=8)
     s = TrainSettings(n_points=30, restarts=1, max_iter=2, calibration_seconds=10, calibration_folds=2,
@@ -566,8 +566,6 @@ def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> N
     choices = [f"calibration: {k}'s {part}" for k in ("param", "gp")
                for part in ("first pass", "second pass", "noise chosen")]  # fmt: skip
     assert done == [*fits, *folds, *choices]
-    assert progress_units([flight], ["param", "gp"], s) == len(done)
     weights = part_weights([flight], ["param", "gp"], s)  # one estimated cost per part, in order
     assert len(weights) == len(done) and all(w > 0 for w in weights)
     assert len(part_weights([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0))) == 1
-    assert progress_units([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0)) == 1
