@@ -558,6 +558,11 @@ def test_central_differences_scale_their_step_with_the_input() -> None:
     at, jac2 = value_and_jacobian(f, x)
     np.testing.assert_array_equal(at, f(x))
     np.testing.assert_array_equal(jac2, jac)
+    # a central difference of x^3 is 3 x^2 + h^2 exactly: the step is rel_step max(1, |x|)
+    x = np.array([[1e-3, 2.0], [5.0, -3.0]])
+    h = 0.01 * np.array([1.0, 5.0])
+    cubic = numeric_jacobian(f, x, rel_step=0.01)[:, 0, 0]
+    np.testing.assert_allclose(cubic, 3 * x[:, 0] ** 2 + h**2, rtol=1e-9)
 
 
 def test_a_gp_conditions_on_a_single_point() -> None:

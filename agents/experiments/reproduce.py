@@ -340,7 +340,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
 
 
 KEPT_S = 0.5  # a unit whose results the folder keeps: read back
-TABLE10_PARTICLE_S = 0.05  # Table 10's seconds per particle (25.4 s with 500, 2026-12-05)
+TABLE10_PARTICLE_S = 0.05  # Table 10's seconds per particle (docs/measurements.md#progress-weights)
 
 
 def _unit_seconds(out: Path, folds: list, fig3: list, s: ReproduceSettings) -> list[float]:
