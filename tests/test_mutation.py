@@ -201,7 +201,27 @@ def test_a_stopped_run_goes_on_and_other_code_starts_afresh(tmp_path: Path) -> N
     said, fresh = go()
     assert "a fresh run (the code changed since the run began" in said and fresh["not_run"] == 0
     assert fresh["run"]["fingerprint"] != first["run"]["fingerprint"]
+    _new_timeouts_run_timed_out_mutants_again(tmp_path, go, fresh, meta)
     _stopped_before_the_draw(tmp_path, go, fresh)
+
+
+def _new_timeouts_run_timed_out_mutants_again(root: Path, go, done: dict, meta: Path) -> None:
+    """Changed timeout settings keep the run (same code) and run its timed-out mutants again."""
+    doc = json.loads(meta.read_text())
+    timed_out = sorted(doc["exit_code_by_key"])[0]
+    doc["exit_code_by_key"][timed_out] = 36  # mutmut's code for a mutant stopped as timed out
+    meta.write_text(json.dumps(doc))
+    project = root / "pyproject.toml"
+    project.write_text(project.read_text() + "timeout_constant = 3.0\n")
+    said, again = go()
+    assert "timed-out mutants run again" in said and "a fresh run" not in said
+    assert json.loads(meta.read_text())["exit_code_by_key"][timed_out] not in (None, 36)
+    assert {k: again[k] for k in ("killed", "timeout", "not_run")} == {
+        k: done[k] for k in ("killed", "timeout", "not_run")
+    }
+    assert again["run"]["fingerprint"] == done["run"]["fingerprint"]
+    assert again["run"]["timeouts"]["timeout_constant"] == 3.0
+    assert again["run"]["timeouts_before"] == [done["run"]["timeouts"]]
 
 
 def _stopped_before_the_draw(root: Path, go, done: dict) -> None:

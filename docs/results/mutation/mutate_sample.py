@@ -23,7 +23,11 @@ The fingerprint is the SHA-256 of ``pyproject.toml``, ``constraints.txt``, the P
 mutmut versions and every Python file under the tests and the folders ``[tool.mutmut]``
 names (``source_paths``, ``also_copy``), except this folder's tools, which read the results
 and do not run the code under test: the code the tests run, not only the mutated modules
-(mutmut keeps its first copy of the modules it does not mutate).
+(mutmut keeps its first copy of the modules it does not mutate). ``[tool.mutmut]``'s
+timeout settings (``timeout_multiplier``, ``timeout_constant``) are left out of it: they
+decide only when a mutant counts as timed out, so a run goes on after they change, running
+its timed-out mutants again under the new settings (the record keeps the settings of each
+part of the run, ``timeouts``).
 
 Run from the repository root: ``python docs/results/mutation/mutate_sample.py
 --max-children 2``.
@@ -40,6 +44,7 @@ import shutil
 import subprocess
 import sys
 import time
+import tomllib
 from importlib.metadata import version
 from pathlib import Path
 
@@ -53,6 +58,8 @@ FIRST = "estimator_service.service.limits*"
 MUTANTS, RUN = summarise.MUTANTS, summarise.RUN_RECORD
 SAMPLE = MUTANTS / "sample.json"
 DRAW_KEYS = ("fraction", "seed", "full", "first")
+#: ``[tool.mutmut]`` keys that only decide when a mutant counts as timed out
+TIMEOUT_KEYS = ("timeout_multiplier", "timeout_constant")
 
 
 def code_folders(root: Path = Path(".")) -> list[str]:
@@ -76,8 +83,19 @@ def fingerprint(root: Path = Path(".")) -> str:
     ]  # fmt: skip
     for p in sorted([*files, root / "pyproject.toml", root / "constraints.txt"]):
         if p.is_file():
-            h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+            text = p.read_bytes()
+            if p.name == "pyproject.toml":  # without the timeout settings (see timeouts)
+                keys = tuple(k.encode() for k in TIMEOUT_KEYS)
+                text = b"".join(ln for ln in text.splitlines(True) if ln.split(b"=")[0].strip() not in keys)
+            h.update(str(p.relative_to(root)).encode() + b"\0" + text + b"\0")
     return h.hexdigest()
+
+
+def timeouts(root: Path = Path(".")) -> dict[str, float]:
+    """``[tool.mutmut]``'s timeout settings, mutmut's defaults where unset."""
+    table = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["mutmut"]
+    defaults = {"timeout_multiplier": 15.0, "timeout_constant": 1.0}  # mutmut 3.8's
+    return {k: float(table.get(k, defaults[k])) for k in TIMEOUT_KEYS}
 
 
 def _mutmut(max_children: int, names: list[str]) -> None:
@@ -103,14 +121,16 @@ def pending(drawn: dict[str, list[str]], unrun: dict[str, list[str]]) -> list[st
     return [n for m, names in sorted(drawn.items()) for n in names if n in left.get(m, ())]
 
 
-def _unrun() -> dict[str, list[str]]:
-    """Per module, its mutants without a result; none before mutmut has made them."""
-    return sample.unrun_by_module() if any(MUTANTS.rglob("*.meta")) else {}
+def _unrun(also: frozenset[str] = frozenset()) -> dict[str, list[str]]:
+    """Per module, its mutants without a result (or with a status in ``also``); none
+    before mutmut has made them."""
+    return sample.unrun_by_module(also) if any(MUTANTS.rglob("*.meta")) else {}
 
 
-def _first_left(pattern: str) -> list[str]:
-    """The ``--first`` mutants still to run: all (the pattern) before mutmut made them."""
-    unrun = _unrun()
+def _first_left(pattern: str, also: frozenset[str] = frozenset()) -> list[str]:
+    """The ``--first`` mutants still to run (or with a status in ``also``): all (the
+    pattern) before mutmut made them."""
+    unrun = _unrun(also)
     if not unrun:
         return [pattern]
     return [n for names in unrun.values() for n in names if fnmatch.fnmatch(n, pattern)]
@@ -143,8 +163,22 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     if not args.first.strip():
         ap.error("--first must name mutants (a mutmut pattern such as 'pkg.module*')")
     settings = {"fingerprint": fingerprint(), "fraction": args.fraction, "seed": args.seed,
-                "full": list(args.full), "first": args.first}  # fmt: skip
+                "full": list(args.full), "first": args.first, "timeouts": timeouts()}  # fmt: skip
     return args, settings
+
+
+def _new_timeouts(record: dict, settings: dict) -> frozenset[str]:
+    """``{"timeout"}`` when the timeout settings changed since the run's last part (its
+    timed-out mutants run again, and the record keeps each part's settings), else empty."""
+    if record.get("timeouts") == settings["timeouts"]:
+        return frozenset()
+    print(f"mutate_sample.py: timeout settings {settings['timeouts']} (the run had "
+          f"{record.get('timeouts', 'mutmut 3.8 defaults or unrecorded')}): timed-out mutants run again",
+          flush=True)  # fmt: skip
+    record["timeouts_before"] = [*record.get("timeouts_before", []), record.get("timeouts")]
+    record["timeouts"] = settings["timeouts"]
+    RUN.write_text(json.dumps(record, indent=1) + "\n")
+    return frozenset({"timeout"})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -160,14 +194,17 @@ def main(argv: list[str] | None = None) -> int:
         MUTANTS.mkdir()
         record = {**settings, "began": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
         RUN.write_text(json.dumps(record, indent=1) + "\n")
+    again = _new_timeouts(record, settings)
+    first: list[str] = []  # --first mutants to run again with the draw (new timeout settings)
     if not SAMPLE.is_file():
-        first = _first_left(args.first)
-        if first:
-            _mutmut(args.max_children, first)
+        todo = _first_left(args.first, again)
+        if todo:
+            _mutmut(args.max_children, todo)
         drawn = _draw(settings)
     else:
         drawn = json.loads(SAMPLE.read_text())["sample"]
-    names = pending(drawn, sample.unrun_by_module())
+        first = _first_left(args.first, again) if again else []
+    names = [*first, *pending(drawn, sample.unrun_by_module(again))]
     total = sum(len(v) for v in drawn.values())
     print(f"mutate_sample.py: the run begun {record['began']}: {len(names)} of {total} sampled mutants "
           "left", flush=True)  # fmt: skip

@@ -33,8 +33,9 @@ SAMPLE = HERE / "sample.json"
 FULL = ("estimator_service/filters/*", "estimator_service/service/limits.py")
 
 
-def unrun_by_module() -> dict[str, list[str]]:
-    """Per mutated module, its mutants not run yet (sorted names)."""
+def unrun_by_module(also: frozenset[str] = frozenset()) -> dict[str, list[str]]:
+    """Per mutated module, its mutants not run yet, and those whose status is in ``also``
+    (e.g. ``{"timeout"}``, to run them again) (sorted names)."""
     from mutmut.mutation.data import SourceFileMutationData
     from mutmut.stats import status_by_exit_code
     from mutmut.utils.file_utils import walk_mutatable_files
@@ -44,7 +45,7 @@ def unrun_by_module() -> dict[str, list[str]]:
         data = SourceFileMutationData(path=path)
         data.load()
         out[str(path)] = sorted(
-            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in NOT_RUN
+            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in NOT_RUN | also
         )
     return out
 
