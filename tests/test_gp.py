@@ -95,6 +95,7 @@ def test_mean_jacobian_matches_finite_differences(models, kind: str, queries: in
         axis=-1,
     )
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6)
+    assert gp.predict(x0).jac is None  # a Jacobian only when asked for, on either path
 
 
 # -- GP limits ----------------------------------------------------------------------------
@@ -389,6 +390,9 @@ def test_exact_and_heteroscedastic_fits_draw_from_the_generator_they_are_given(t
     before = rng.bit_generator.state
     fit_hetero(x[:40], y[:40, 0], iterations=1, restarts=1, max_iter=3, hyper_points=20, rng=rng)
     assert rng.bit_generator.state != before
+    # without a generator the fit is seeded, so it is repeatable too
+    unseeded = [fit_exact(x, y[:, 0], restarts=2, max_iter=5, hyper_points=40).theta for _ in range(2)]
+    np.testing.assert_array_equal(*unseeded)
 
 
 # -- persistence ----------------------------------------------------------------------------
