@@ -96,6 +96,53 @@ def test_mean_jacobian_matches_finite_differences(models, kind: str, queries: in
     )
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6)
     assert gp.predict(x0).jac is None  # a Jacobian only when asked for, on either path
+    assert gp.predict(x0, return_var=False).var is None  # and a variance too
+
+
+def test_an_exact_gp_with_a_noise_profile_is_the_closed_form_posterior() -> None:
+    """``ExactGP.from_theta`` with per-point noise ``sn2 r_i`` (the heteroscedastic GP's main
+    GP): its weights are ``(K + sn2 diag(r))^-1 y`` by a dense solve, per output with its own
+    hyperparameters; it keeps the profile (a saved model records it) and its posterior
+    arrays are read-only (a frozen posterior)."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(30, 2))
+    y = np.stack([np.sin(x[:, 0]), x[:, 1] ** 2 - 1.0], axis=1)
+    theta = np.array([[0.1, -0.2, 0.3, -1.0], [-0.3, 0.4, 0.1, -0.5]])
+    prof = rng.uniform(0.2, 5.0, size=(2, 30))
+    one = Scaler(np.zeros(2), np.ones(2))
+    gp = ExactGP.from_theta(x, y, theta, one, one, noise_profile=prof)
+    for p in range(2):
+        ell, sf2, sn2 = np.exp(theta[p, :2]), np.exp(2 * theta[p, 2]), np.exp(2 * theta[p, 3])
+        k = se_kernel(x, x, ell, sf2) + np.diag(sn2 * prof[p])
+        np.testing.assert_allclose(gp.alpha[p], np.linalg.solve(k, y[:, p]), rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(gp.noise_profile, prof)
+    for arr in (gp.theta, gp.x_train, gp.chol_t, gp.alpha):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 0.0
+
+
+def test_a_large_batch_is_predicted_in_chunks_with_the_same_results(models, monkeypatch) -> None:
+    """Queries beyond the kernel block's byte cap go in row chunks of ``cap // (8 P n)``: the
+    recursion sees exactly those chunks, and the results equal the one-block prediction."""
+    import estimator_service.gp.exact as exact
+
+    gp = models["exact"]
+    x = np.random.default_rng(6).uniform(-3, 3, (35, 2))
+    whole = gp.predict(x, return_jac=True)
+    p_out, n = gp.alpha.shape
+    monkeypatch.setattr(exact, "_CHUNK_BYTES", 10 * 8 * p_out * n)  # 10 queries a chunk
+    sizes: list[int] = []
+    latent = ExactGP.latent
+
+    def spy(self, xs, return_var, return_jac):
+        sizes.append(len(xs))
+        return latent(self, xs, return_var, return_jac)
+
+    monkeypatch.setattr(ExactGP, "latent", spy)
+    parts = gp.predict(x, return_jac=True)
+    assert sizes == [35, 10, 10, 10, 5]
+    for a, b in zip((parts.mean, parts.var, parts.jac), (whole.mean, whole.var, whole.jac), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)  # the stacked and by-output paths
 
 
 # -- GP limits ----------------------------------------------------------------------------
@@ -353,6 +400,10 @@ def test_enhanced_gp_falls_back_to_parametric_model_far_from_data() -> None:
     assert abs(egp.predict(far).mean[0, 0] - 50.0) < 0.5
     assert abs(plain.predict(far).mean[0, 0] - 50.0) > 5.0
     assert egp.predict(far, return_jac=True).jac[0, 0, 0] == pytest.approx(2.0, abs=1e-3)
+    # a one-output mean function may return (M,) rather than (M, 1): the same model
+    flat = fit_enhanced(x, y, lambda q: 2.0 * q[:, 0], fit_exact, mean_jacobian=egp.mean_jacobian)
+    q = np.array([[-1.0], [0.5], [25.0]])
+    np.testing.assert_allclose(flat.predict(q).mean, egp.predict(q).mean, rtol=1e-12)
 
 
 def test_posterior_is_immutable(models) -> None:
