@@ -27,7 +27,8 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py
 
 # Mutation testing (outside `make test`; hours on 2 cores): the configuration is
-# [tool.mutmut] in pyproject.toml; the score goes to docs/results/mutation/. Both targets go
+# [tool.mutmut] in pyproject.toml; a run's score goes to docs/results/mutation/full/ (or
+# sampled/), and combine.py there scores every module by its latest run in full. Both targets go
 # on where a stopped run of the same code left off, and start afresh on any other code
 # (docs/results/mutation/mutate_sample.py).
 mutate: $(STAMP)

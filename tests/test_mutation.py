@@ -240,3 +240,47 @@ def _stopped_before_the_draw(root: Path, go, done: dict) -> None:
     assert {k: again[k] for k in ("killed", "survived", "not_run", "total")} == {
         k: done[k] for k in ("killed", "survived", "not_run", "total")
     }
+
+
+def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path) -> None:
+    """``combine.py``: each module scored by the latest run that ran all its mutants as a
+    ``--full`` module; timed-out mutants give the lower bound; survivors take today's reasons;
+    a module no run took in full is named, not counted."""
+    sys.path.insert(0, str(SUMMARISE.parent))
+    import combine
+
+    def entry(total, killed, timeout, survived, not_run=0):
+        return {"total": total, "killed": killed, "timeout": timeout, "survived": survived, "no_tests": 0,
+                "not_run": not_run, "killed_ratio": None, "sha256": f"h{total}"}  # fmt: skip
+
+    change = "- a = b * c | + a = b / c"
+    older = {"run": {"began": "2026-01-01 10:00:00 UTC", "full": ["pkg/a.py", "pkg/b.py"]},
+             "modules": {"pkg/a.py": entry(10, 8, 1, 1), "pkg/b.py": entry(5, 3, 0, 2),
+                         "pkg/c.py": entry(4, 1, 0, 0, not_run=3)},
+             "survivors": [{"mutant": "pkg.a.x_f__mutmut_1", "status": "survived", "change": change,
+                            "reason": "unexplained"}]}  # fmt: skip
+    run = {"began": "2026-01-02 10:00:00 UTC", "full": ["pkg/b.py"], "timeouts": {"timeout_constant": 10}}
+    newer = {"run": run,
+             "modules": {"pkg/a.py": entry(10, 1, 0, 0, not_run=9), "pkg/b.py": entry(5, 4, 0, 1)},
+             "survivors": [{"mutant": "pkg.b.x_g__mutmut_2", "status": "survived", "change": change,
+                            "reason": "unexplained"}]}  # fmt: skip
+    for name, doc in (
+        ("older", older),
+        ("newer", newer),
+        (".", {"combined": True, "modules": {}, "run": {}}),
+    ):
+        (tmp_path / name).mkdir(exist_ok=True)
+        (tmp_path / name / "results.json").write_text(json.dumps(doc))
+    reasons = {"mutants": {"pkg.a.x_f__mutmut_1": "test added after this run (fails with it): t"},
+               "changes": [[r"b / c", "equivalent: c is 1"]]}  # fmt: skip
+    res = combine.combine(combine.runs(tmp_path), reasons, tmp_path, {"pkg/a.py": "h10", "pkg/b.py": "other"})
+    assert res["modules"]["pkg/a.py"]["run"] == "older" and res["modules"]["pkg/b.py"]["run"] == "newer"
+    assert res["not_in_full"] == ["pkg/c.py"] and res["source_changed_since_run"] == ["pkg/b.py"]
+    assert (res["total"], res["killed"], res["timeout"], res["survived"]) == (15, 12, 1, 2)
+    assert res["killed_ratio"] == round(13 / 15, 4) and res["killed_ratio_without_timeouts"] == round(
+        12 / 15, 4
+    )
+    assert res["killed_ratio_with_tests_added"] == round(14 / 15, 4) and res["survived_with_test_added"] == 1
+    assert [s["reason"] for s in res["survivors"]] == ["test added after this run (fails with it): t",
+                                                       "equivalent: c is 1"]  # fmt: skip
+    assert res["survivors_unexplained"] == 0 and "| `pkg/b.py` | 5 | 4 | 0 | 1 |" in combine.report(res)

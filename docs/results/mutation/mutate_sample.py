@@ -15,8 +15,10 @@ script runs only the mutants that have no result yet; otherwise it starts afresh
   ``mutants/sample.json``.
 - Going on: the first mutants still without a result, the draw if it was not made, then the
   drawn mutants still without a result.
-- Then ``summarise.py`` writes ``results.json`` and ``report.md`` (``--out``), with the run's
-  record, and the draw is copied beside them as ``sample.json``. Mutants still without a
+- Then ``summarise.py`` writes ``results.json`` and ``report.md`` (``--out``: ``sampled/``, or
+  ``full/`` with ``--fraction 1``), with the run's record, and the draw is copied beside them
+  as ``sample.json``; for a folder beside this script, ``combine.py`` then scores every run
+  kept here into this folder's ``results.json``. Mutants still without a
   result (mutmut stopped early) are named and the exit status is 1.
 
 The fingerprint is the SHA-256 of ``pyproject.toml``, ``constraints.txt``, the Python and
@@ -50,6 +52,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # sample.py and summarise.py, beside this script
+import combine  # noqa: E402
 import sample  # noqa: E402
 import summarise  # noqa: E402
 
@@ -151,7 +154,12 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     ap.add_argument("--seed", type=int, default=0, help="seed of the draw")
     ap.add_argument("--full", nargs="*", default=list(sample.FULL), help="module globs run completely")
     ap.add_argument("--first", default=FIRST, help="mutants run before the draw (mutmut's pattern)")
-    ap.add_argument("--out", type=Path, default=HERE, help="folder for results.json and report.md")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="folder for results.json and report.md (default: sampled/ "
+        "beside this script, full/ with --fraction 1; combine.py then scores all runs here)",
+    )
     ap.add_argument("--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons")
     args = ap.parse_args(argv)
     if not 0.0 < args.fraction <= 1.0:
@@ -162,6 +170,9 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
         ap.error(f"--seed must be at least 0, got {args.seed}")
     if not args.first.strip():
         ap.error("--first must name mutants (a mutmut pattern such as 'pkg.module*')")
+    args.out = args.out or HERE / ("full" if args.fraction >= 1 else "sampled")
+    if args.out.resolve() == HERE:
+        ap.error(f"--out {args.out}: that folder holds the combined score of all runs (combine.py)")
     settings = {"fingerprint": fingerprint(), "fraction": args.fraction, "seed": args.seed,
                 "full": list(args.full), "first": args.first, "timeouts": timeouts()}  # fmt: skip
     return args, settings
@@ -213,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     status = summarise.main(["--out", str(args.out), "--reasons", str(args.reasons), "--sample", str(SAMPLE)])
     if args.out.resolve() != SAMPLE.parent.resolve():
         shutil.copyfile(SAMPLE, args.out / "sample.json")  # the draw beside the results it gave
+    if HERE in args.out.resolve().parents:  # a run kept beside the others: score them all again
+        combine.main([])
     left = pending(drawn, sample.unrun_by_module()) + _first_left(args.first)
     if left:
         print(f"mutate_sample.py: {len(left)} mutants still without a result (mutmut stopped early?): "

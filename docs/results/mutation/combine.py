@@ -1,0 +1,171 @@
+"""One score over every configured module from the mutation runs kept in this folder.
+
+A whole ``make mutate`` takes longer than a working session on 2 cores, so modules are run
+in full a few at a time (``mutate_sample.py --full ...``), each run in a folder of its own
+beside this script (``results.json`` with its ``run`` record). This script reads every such
+``results.json`` below this folder (``sampled/`` and the per-run folders; not its own
+output), takes for each module the latest run that ran *all* its mutants as one of the
+run's ``--full`` modules, and writes ``results.json`` and ``report.md`` here:
+
+- per module: that run's counts, its folder, when it began, its timeout settings and whether
+  the module's source is still the one it ran (``source_current``, by SHA-256); a module no
+  run took in full is listed in ``not_in_full`` with nothing counted;
+- in total over the modules run in full: ``killed`` (timed-out mutants apart, ``timeout``),
+  ``survived``, ``no_tests``, ``killed_ratio`` (timeouts counted as killed, mutmut's rule)
+  and ``killed_ratio_without_timeouts`` (its lower bound: a timed-out mutant is not always a
+  killed one, ``gp_models_base/README.md``);
+- every survivor of those runs with its reason as ``reasons.json`` gives it today, and
+  ``killed_ratio_with_tests_added``: survivors whose reason says a test was added after the
+  run (each failing with its mutant applied by hand) counted as killed.
+
+Run from the repository root: ``python docs/results/mutation/combine.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import json
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # summarise.py, beside this script
+import summarise  # noqa: E402
+
+COUNTS = ("killed", "timeout", "survived", "no_tests")
+TEST_ADDED = "test added after this run"
+
+
+def runs(folder: Path) -> list[tuple[Path, dict]]:
+    """Every run's ``results.json`` below ``folder`` (not a combined one), oldest first."""
+    found = []
+    for path in sorted(folder.rglob("results.json")):
+        doc = json.loads(path.read_text())
+        if not doc.get("combined") and "run" in doc and "modules" in doc:
+            found.append((path.parent, doc))
+    return sorted(found, key=lambda fd: fd[1]["run"].get("began", ""))
+
+
+def latest_full(found: list[tuple[Path, dict]], root: Path) -> dict[str, tuple[Path, dict, dict]]:
+    """Per module, the latest run that ran all its mutants as a ``--full`` module:
+    ``(folder, its entry, the run's results)``."""
+    best: dict[str, tuple[Path, dict, dict]] = {}
+    for folder, doc in found:  # oldest first: a later run replaces an earlier one
+        for module, entry in doc["modules"].items():
+            full = any(fnmatch.fnmatch(module, g) for g in doc["run"].get("full", []))
+            if full and entry["not_run"] == 0:
+                best[module] = (folder.relative_to(root), entry, doc)
+    return best
+
+
+def _ratio(killed: float, total: int) -> float | None:
+    return round(killed / total, 4) if total else None
+
+
+def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: dict[str, str]) -> dict:
+    """The combined document (see the module docstring); ``current``: each module's SHA-256
+    today."""
+    chosen = latest_full(found, root)
+    modules = sorted({m for _, doc in found for m in doc["modules"]})
+    out_modules, survivors = {}, []
+    for module in modules:
+        if module not in chosen:
+            continue
+        folder, entry, doc = chosen[module]
+        out_modules[module] = {
+            **{k: entry[k] for k in ("total", *COUNTS)},
+            "killed_ratio": entry["killed_ratio"],
+            "run": str(folder), "began": doc["run"].get("began"),
+            "timeouts": doc["run"].get("timeouts", "timeout_constant 1 s (mutmut's), multiplier 5 or 15"),
+            "source_current": entry.get("sha256") == current.get(module),
+        }  # fmt: skip
+        survivors += [
+            {**s, "run": str(folder), "reason": summarise._reason(reasons, s["mutant"], s["change"])}
+            for s in doc.get("survivors", [])
+            if summarise._module_of(s["mutant"]) == module
+        ]
+    total = {k: sum(v[k] for v in out_modules.values()) for k in COUNTS}
+    n = sum(v["total"] for v in out_modules.values())
+    added = sum(s["reason"].startswith(TEST_ADDED) for s in survivors)
+    explained = sum(s["reason"] != "unexplained" for s in survivors)
+    return {
+        "combined": True, **total, "total": n,
+        "killed_ratio": _ratio(total["killed"] + total["timeout"], n),
+        "killed_ratio_without_timeouts": _ratio(total["killed"], n),
+        "killed_ratio_with_tests_added": _ratio(total["killed"] + total["timeout"] + added, n),
+        "survived_with_test_added": added,
+        "survivors_explained": explained, "survivors_unexplained": len(survivors) - explained,
+        "modules_in_full": len(out_modules),
+        "not_in_full": [m for m in modules if m not in chosen],
+        "source_changed_since_run": [m for m, v in out_modules.items() if not v["source_current"]],
+        "modules": out_modules, "survivors": survivors,
+    }  # fmt: skip
+
+
+def report(res: dict) -> str:
+    """``res`` as markdown."""
+    three = summarise._three
+    head = [
+        "# Mutation testing: the equations and the service's limits",
+        "",
+        "One operator, constant, name or argument of the code changed at a time (a *mutant*, made by",
+        "[mutmut](https://github.com/boxed/mutmut) 3); the unit tests that reach the changed function",
+        "run against it. The configuration is `[tool.mutmut]` in `pyproject.toml`:",
+        "`estimator_service/filters`, `gp`, `models` and `service/limits.py`; tests marked `slow` are",
+        "left out; `raise` statements keep their message text. Modules are run in full a few at a",
+        "time, each run in its own folder here with a README (when, which code, which settings);",
+        "this page takes for each module the latest run of all its mutants (`combine.py`).",
+        "",
+        f"**Over the {res['modules_in_full']} modules run in full ({res['total']} mutants): killed ratio "
+        f"{three(res['killed_ratio'])}** ({res['killed']} killed, {res['timeout']} timed out, "
+        f"{res['survived']} survived, {res['no_tests']} reached by no test). mutmut counts a timed-out",
+        "mutant as killed, and some are not; not counting them, the ratio is "
+        f"{three(res['killed_ratio_without_timeouts'])}. With the {res['survived_with_test_added']} "
+        "survivors that have a test added after their run (each fails with its mutant applied by hand) "
+        f"counted as killed: {three(res['killed_ratio_with_tests_added'])}. Survivors explained: "
+        f"{res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
+        "",
+        "Not run in full yet: " + (", ".join(f"`{m}`" for m in res["not_in_full"]) or "none") + " (the",
+        "sampled run in `sampled/` estimates them). Source changed since its run: "
+        + (", ".join(f"`{m}`" for m in res["source_changed_since_run"]) or "none")
+        + ".",
+        "",
+        "| module | mutants | killed | timed out | survived | no test | killed ratio | run | began |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows = [
+        f"| `{m}` | {v['total']} | {v['killed']} | {v['timeout']} | {v['survived']} | {v['no_tests']} | "
+        f"{three(v['killed_ratio'])} | `{v['run']}` | {v['began']} |"
+        for m, v in res["modules"].items()
+    ]
+    tail = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
+    tail += [
+        f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in res["survivors"]
+    ]
+    return "\n".join([*head, *rows, *tail]) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--folder", type=Path, default=HERE, help="the folder of runs; the results go here")
+    ap.add_argument("--reasons", type=Path, default=HERE / "reasons.json", help="survivors' reasons")
+    args = ap.parse_args(argv)
+    found = runs(args.folder)
+    if not found:
+        print(f"no mutation runs (results.json with a run record) below {args.folder}", file=sys.stderr)
+        return 2
+    reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
+    modules = {m for _, doc in found for m in doc["modules"]}
+    current = {m: summarise.source_hash(m) for m in modules if Path(m).is_file()}
+    res = combine(found, reasons, args.folder, current)
+    (args.folder / "results.json").write_text(summarise.json_text(res, indent=1) + "\n")
+    (args.folder / "report.md").write_text(report(res))
+    keys = ("killed_ratio", "killed_ratio_without_timeouts", "killed_ratio_with_tests_added", "total",
+            "modules_in_full", "survivors_unexplained")  # fmt: skip
+    print(json.dumps({k: res[k] for k in keys}))
+    return 0 if res["survivors_unexplained"] == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
