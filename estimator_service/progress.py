@@ -62,7 +62,7 @@ class ProgressBar:
         self._weight_done = 0.0  # with weights: the weight of the units done
         self._stream = stream or sys.stderr
         self._enabled, self._every = enabled, every_s
-        self._t0 = self._last = time.monotonic()
+        self._t0 = self._last = self._t_done = time.monotonic()  # _t_done: when the share last grew
         self._postfix = ""
         self._bar = None
         self._lock, self._done = threading.Lock(), threading.Event()
@@ -98,6 +98,8 @@ class ProgressBar:
         self._show(n, postfix)
 
     def _show(self, n: int, postfix: str) -> None:
+        if n > self.n:
+            self._t_done = time.monotonic()
         delta, self.n = n - self.n, n
         if self._bar is not None:
             if self._cum is not None:
@@ -134,13 +136,32 @@ class ProgressBar:
             return min(1.0, self._weight_done / float(self._cum[-1]))
         return min(1.0, self.n / self.total) if self.total else 0.0
 
+    def _next_share(self) -> float:
+        """The share of the job the next unit in order stands for (0 when none is left)."""
+        if not self.total or self.n >= self.total:
+            return 0.0
+        if self._cum is None:
+            return 1.0 / self.total
+        return float(self._cum[self.n + 1] - self._cum[self.n]) / float(self._cum[-1])
+
+    def _eta(self, now: float) -> float | None:
+        """Seconds left: the share left at the pace of the share done (up to when it last
+        grew), less the time the running unit has taken, at most its own estimate, so the
+        ETA counts down while a long unit runs instead of growing with the elapsed time."""
+        frac = self._fraction()
+        if frac <= 0:
+            return None
+        whole = (self._t_done - self._t0) / frac  # the job's seconds at the pace so far
+        running = min(now - self._t_done, whole * self._next_share())
+        return max(0.0, whole * (1 - frac) - running)
+
     def _line(self) -> None:
         self._last = time.monotonic()
         elapsed = self._last - self._t0
         text = f"{self.desc}: {self._count()} {self.unit}s"
         if self.total:
-            frac = self._fraction()
-            eta = f"{elapsed * (1 - frac) / frac:.0f} s" if frac > 0 else "?"
+            frac, left = self._fraction(), self._eta(self._last)
+            eta = "?" if left is None else f"{left:.0f} s"
             text += f" ({100 * frac:.0f}%), {elapsed:.0f} s elapsed, ETA {eta}"
         else:
             text += f", {elapsed:.0f} s elapsed"

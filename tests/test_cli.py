@@ -207,6 +207,32 @@ def test_weighted_progress_shows_the_share_of_the_weight_done_and_refuses_bad_we
         ProgressBar("x", 2, weights=[1.0, 1.0, 1.0], enabled=False)
 
 
+def test_the_eta_counts_down_while_a_long_unit_runs(monkeypatch) -> None:
+    """Off a terminal the ETA is the share left at the pace of the share done, less the time
+    the running unit has taken (at most its own estimate): while a long unit reports nothing
+    it counts down, and it never grows with the elapsed time (it did: 90 s, then 360 s)."""
+    import io
+
+    import estimator_service.progress as progress
+
+    clock = [0.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: clock[0])
+    out = io.StringIO()
+    with progress.ProgressBar("train", unit="part", stream=out, every_s=3600, weights=[1.0, 6.0, 3.0]) as bar:
+        clock[0] = 10.0
+        bar.advance()  # 10 % in 10 s: the job looks like 100 s, the running part like 60 s
+        for t in (10.0, 40.0, 70.0, 200.0):
+            clock[0] = t
+            bar._line()  # what the heartbeat prints
+        clock[0] = 210.0
+        bar.advance()
+        bar._line()
+    etas = [line.rsplit("ETA ", 1)[1] for line in out.getvalue().splitlines()]
+    # 90 s left; 30 s into the 60-s part, 60 s; past its estimate, the 30 s after it; then
+    # 70 % in 210 s: 90 s left (and the closing line)
+    assert etas == ["90 s", "60 s", "30 s", "30 s", "90 s", "90 s"]
+
+
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
     import io
 
