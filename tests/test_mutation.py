@@ -284,3 +284,29 @@ def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path) -> None:
     assert [s["reason"] for s in res["survivors"]] == ["test added after this run (fails with it): t",
                                                        "equivalent: c is 1"]  # fmt: skip
     assert res["survivors_unexplained"] == 0 and "| `pkg/b.py` | 5 | 4 | 0 | 1 |" in combine.report(res)
+
+
+def test_a_mutant_only_a_module_fixture_reaches_is_run_against_the_whole_file(tmp_path: Path) -> None:
+    """mutmut maps a function that only a module-scoped fixture calls to the first test that
+    built it; the driver runs such survivors again against every test of that file, where
+    the test that checks the value kills them."""
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "calc.py").write_text("def scale(x):\n    return 3 * x\n")
+    (tmp_path / "tests" / "test_calc.py").write_text(
+        "import pytest\n\nfrom pkg.calc import scale\n\n\n@pytest.fixture(scope='module')\ndef scaled():\n"
+        "    return scale(2)\n\n\ndef test_runs(scaled):\n    assert scaled is not None\n\n\n"
+        "def test_value(scaled):\n    assert scaled == 6\n"
+    )
+    (tmp_path / "pyproject.toml").write_text(
+        '[tool.mutmut]\nsource_paths = ["pkg"]\npytest_add_cli_args_test_selection = ["tests"]\n'
+    )
+    out = tmp_path / "out"
+    driver = [sys.executable, SUMMARISE.with_name("mutate_sample.py"), "--max-children", "1", "--fraction",
+              "1", "--first", "pkg.calc*", "--out", out, "--reasons", tmp_path / "none.json"]  # fmt: skip
+    run = subprocess.run(driver, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    res = json.loads((out / "results.json").read_text())
+    assert "survivors run again against their tests' files" in run.stdout
+    assert res["survived"] == 0 and res["killed"] == res["total"] >= 2 and res["run"]["survivors_rerun"]

@@ -41,6 +41,7 @@ import argparse
 import fnmatch
 import hashlib
 import json
+import os
 import platform
 import shutil
 import subprocess
@@ -53,6 +54,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # sample.py and summarise.py, beside this script
 import combine  # noqa: E402
+import run_mutmut  # noqa: E402
 import sample  # noqa: E402
 import summarise  # noqa: E402
 
@@ -101,10 +103,11 @@ def timeouts(root: Path = Path(".")) -> dict[str, float]:
     return {k: float(table.get(k, defaults[k])) for k in TIMEOUT_KEYS}
 
 
-def _mutmut(max_children: int, names: list[str]) -> None:
-    """``run_mutmut.py run`` in its own process; stops this script if it fails."""
+def _mutmut(max_children: int, names: list[str], env: dict[str, str] | None = None) -> None:
+    """``run_mutmut.py run`` in its own process (``env``: variables added); stops this
+    script if it fails."""
     cmd = [sys.executable, str(HERE / "run_mutmut.py"), "run", "--max-children", str(max_children), *names]
-    if subprocess.run(cmd).returncode != 0:
+    if subprocess.run(cmd, env={**os.environ, **(env or {})}).returncode != 0:
         raise SystemExit("mutate_sample.py: mutmut failed (see above); the results so far are kept")
 
 
@@ -178,6 +181,23 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
     return args, settings
 
 
+def _survivors_again(max_children: int, record: dict, drawn: dict[str, list[str]], first: str) -> None:
+    """Run the run's surviving mutants again against every test of their tests' files
+    (``run_mutmut.py``'s ``WHOLE_TEST_FILES``: mutmut maps a function that only a module- or
+    session-scoped fixture calls to the first test that built the fixture), each once; the
+    record lists them (``survivors_rerun``)."""
+    done = set(record.get("survivors_rerun", []))
+    mine = {n for names in drawn.values() for n in names}
+    survived = [n for names in sample.by_status(frozenset({"survived"})).values() for n in names
+                if (n in mine or fnmatch.fnmatch(n, first)) and n not in done]  # fmt: skip
+    if not survived:
+        return
+    print(f"mutate_sample.py: {len(survived)} survivors run again against their tests' files", flush=True)
+    _mutmut(max_children, survived, {run_mutmut.WHOLE_TEST_FILES: "1"})
+    record["survivors_rerun"] = sorted(done | set(survived))
+    RUN.write_text(json.dumps(record, indent=1) + "\n")
+
+
 def _new_timeouts(record: dict, settings: dict) -> frozenset[str]:
     """``{"timeout"}`` when the timeout settings changed since the run's last part (its
     timed-out mutants run again, and the record keeps each part's settings), else empty."""
@@ -221,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
           "left", flush=True)  # fmt: skip
     if names:
         _mutmut(args.max_children, names)
+    _survivors_again(args.max_children, record, drawn, args.first)
     status = summarise.main(["--out", str(args.out), "--reasons", str(args.reasons), "--sample", str(SAMPLE)])
     if args.out.resolve() != SAMPLE.parent.resolve():
         shutil.copyfile(SAMPLE, args.out / "sample.json")  # the draw beside the results it gave

@@ -36,6 +36,11 @@ FULL = ("estimator_service/filters/*", "estimator_service/service/limits.py")
 def unrun_by_module(also: frozenset[str] = frozenset()) -> dict[str, list[str]]:
     """Per mutated module, its mutants not run yet, and those whose status is in ``also``
     (e.g. ``{"timeout"}``, to run them again) (sorted names)."""
+    return by_status(frozenset(NOT_RUN) | also)
+
+
+def by_status(statuses: frozenset[str]) -> dict[str, list[str]]:
+    """Per mutated module, its mutants whose mutmut status is one of ``statuses`` (sorted)."""
     from mutmut.mutation.data import SourceFileMutationData
     from mutmut.stats import status_by_exit_code
     from mutmut.utils.file_utils import walk_mutatable_files
@@ -45,7 +50,7 @@ def unrun_by_module(also: frozenset[str] = frozenset()) -> dict[str, list[str]]:
         data = SourceFileMutationData(path=path)
         data.load()
         out[str(path)] = sorted(
-            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in NOT_RUN | also
+            k for k, c in data.exit_code_by_key.items() if status_by_exit_code[c] in statuses
         )
     return out
 
