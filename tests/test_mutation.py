@@ -286,10 +286,12 @@ def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path) -> None:
     assert res["survivors_unexplained"] == 0 and "| `pkg/b.py` | 5 | 4 | 0 | 1 |" in combine.report(res)
 
 
-def test_a_mutant_only_a_module_fixture_reaches_is_run_against_the_whole_file(tmp_path: Path) -> None:
+def test_a_mutant_only_a_module_fixture_reaches_is_run_against_every_test_of_the_fixture(
+    tmp_path: Path,
+) -> None:
     """mutmut maps a function that only a module-scoped fixture calls to the first test that
-    built it; the driver runs such survivors again against every test of that file, where
-    the test that checks the value kills them."""
+    built it; the driver runs such survivors again against every test using that fixture,
+    where the test that checks the value kills them."""
     (tmp_path / "pkg").mkdir()
     (tmp_path / "tests").mkdir()
     (tmp_path / "pkg" / "__init__.py").write_text("")
@@ -308,5 +310,5 @@ def test_a_mutant_only_a_module_fixture_reaches_is_run_against_the_whole_file(tm
     run = subprocess.run(driver, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     res = json.loads((out / "results.json").read_text())
-    assert "survivors run again against their tests' files" in run.stdout
+    assert "survivors run again with the tests sharing their fixtures" in run.stdout
     assert res["survived"] == 0 and res["killed"] == res["total"] >= 2 and res["run"]["survivors_rerun"]

@@ -182,18 +182,21 @@ def _settings(argv: list[str] | None) -> tuple[argparse.Namespace, dict]:
 
 
 def _survivors_again(max_children: int, record: dict, drawn: dict[str, list[str]], first: str) -> None:
-    """Run the run's surviving mutants again against every test of their tests' files
-    (``run_mutmut.py``'s ``WHOLE_TEST_FILES``: mutmut maps a function that only a module- or
-    session-scoped fixture calls to the first test that built the fixture), each once; the
-    record lists them (``survivors_rerun``)."""
+    """Run the run's surviving mutants again, each once, against their tests and every test
+    sharing a wider-scoped fixture with them (``run_mutmut.py``'s ``SHARED_FIXTURES``: mutmut
+    maps a function that only a module- or session-scoped fixture calls to the first test that
+    built the fixture); the record lists them (``survivors_rerun``)."""
     done = set(record.get("survivors_rerun", []))
     mine = {n for names in drawn.values() for n in names}
     survived = [n for names in sample.by_status(frozenset({"survived"})).values() for n in names
                 if (n in mine or fnmatch.fnmatch(n, first)) and n not in done]  # fmt: skip
     if not survived:
         return
-    print(f"mutate_sample.py: {len(survived)} survivors run again against their tests' files", flush=True)
-    _mutmut(max_children, survived, {run_mutmut.WHOLE_TEST_FILES: "1"})
+    print(
+        f"mutate_sample.py: {len(survived)} survivors run again with the tests sharing their fixtures",
+        flush=True,
+    )
+    _mutmut(max_children, survived, {run_mutmut.SHARED_FIXTURES: "1"})
     record["survivors_rerun"] = sorted(done | set(survived))
     RUN.write_text(json.dumps(record, indent=1) + "\n")
 

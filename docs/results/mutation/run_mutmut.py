@@ -12,13 +12,15 @@ mutmut's own test runs and hung closing them (``../gp_models_base/README.md``). 
 scores committed before 2026-12-05 16:00 UTC were measured with the fork runner. The repair
 reads the runner's private fields, so it refuses to run on a mutmut whose runner lacks them.
 
-With ``WHOLE_TEST_FILES=1`` in the environment, a second repair: each function's tests are
-all the tests of the files of the tests mutmut mapped it to. mutmut maps a function to the
-tests during whose setup, call or teardown it ran, so a function that only a module- or
-session-scoped fixture calls is mapped to the first test that built the fixture, and a
-mutant there is never run against the file's other tests, which may be the ones that see
-it (``fit_circular``'s angle-output mutants survived this way, 2026-12-05). The driver
-(``mutate_sample.py``) runs the survivors of a run again with it.
+With ``SHARED_FIXTURES=1`` in the environment, a second repair: each function's tests also
+take every test that shares one of their module-, class-, package- or session-scoped
+fixtures (the project's own, not pytest's). mutmut maps a function to the tests during
+whose setup, call or teardown it ran, so a function that only such a fixture calls is mapped
+to the first test that built the fixture, and a mutant there is never run against the other
+tests of that fixture, which may be the ones that see it (``fit_circular``'s angle-output
+mutants survived this way, 2026-12-05). The fixtures come from a collection run in a process
+of its own (``--shared-fixtures FILE``), so mutmut's process stays free of the tests. The
+driver (``mutate_sample.py``) runs the survivors of a run again with it.
 
 Run from the repository root with mutmut's own arguments: ``python
 docs/results/mutation/run_mutmut.py run --max-children 2``.
@@ -35,8 +37,9 @@ from mutmut.__main__ import cli
 from mutmut.state import state
 from mutmut.workers import isolation
 
-#: environment variable: map each function to every test of its tests' files
-WHOLE_TEST_FILES = "WHOLE_TEST_FILES"
+#: environment variable: widen each function's tests by the tests sharing their fixtures
+SHARED_FIXTURES = "SHARED_FIXTURES"
+SCOPES = ("class", "module", "package", "session")  # fixtures built once for several tests
 
 
 def _wait_for_result(self: isolation.ForkRunner, timeout: float | None = None) -> isolation.MutantResult:
@@ -66,31 +69,81 @@ def _repair() -> None:
     isolation.ForkRunner.wait_for_result = _wait_for_result  # type: ignore[method-assign]
 
 
-def whole_files(tests_by_function: dict[str, set[str]], all_tests: set[str]) -> dict[str, set[str]]:
-    """Each function's tests widened to every test (of ``all_tests``) in their files."""
-    by_file: defaultdict[str, set[str]] = defaultdict(set)
-    for t in all_tests:
-        by_file[t.split("::", 1)[0]].add(t)
-    return {f: set().union(*(by_file[t.split("::", 1)[0]] for t in tests)) if tests else set()
+def widen(tests_by_function: dict[str, set[str]], fixtures: dict[str, list[str]]) -> dict[str, set[str]]:
+    """Each function's tests with every test sharing one of their ``fixtures`` (per test id,
+    its wider-scoped fixtures' ids: :func:`shared_fixtures`)."""
+    users: defaultdict[str, set[str]] = defaultdict(set)
+    for test, keys in fixtures.items():
+        for k in keys:
+            users[k].add(test)
+    return {f: set(tests).union(*(users[k] for t in tests for k in fixtures.get(t, ())))
             for f, tests in tests_by_function.items()}  # fmt: skip
 
 
+def shared_fixtures(args: list[str]) -> dict[str, list[str]]:
+    """Per test id collected by ``pytest --collect-only args``, the ids
+    (``baseid::name``) of the project's fixtures of a scope in :data:`SCOPES` it uses."""
+    import pytest
+
+    class Collector:
+        def __init__(self) -> None:
+            self.found: dict[str, list[str]] = {}
+
+        def pytest_collection_modifyitems(self, items) -> None:
+            for item in items:
+                info = getattr(item, "_fixtureinfo", None)
+                defs = [] if info is None else [d[-1] for d in info.name2fixturedefs.values() if d]
+                self.found[item.nodeid] = sorted(
+                    f"{d.baseid}::{d.argname}" for d in defs if d.scope in SCOPES and d.baseid
+                )
+
+    collector = Collector()
+    code = pytest.main(["--collect-only", "-q", *args], plugins=[collector])
+    if code not in (0, 5):  # 5: no tests collected
+        raise SystemExit(f"run_mutmut.py --shared-fixtures: pytest could not collect the tests (exit {code})")
+    return collector.found
+
+
 def _widen_after_stats() -> None:
-    """Widen mutmut's map of tests (:func:`whole_files`) each time it collects or loads it."""
+    """Widen mutmut's map of tests (:func:`widen`) each time it collects or loads it."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    from mutmut.configuration import config
+
     collect = mutmut_main.collect_or_load_stats
 
     def collect_then_widen(*args, **kwargs):
         collect(*args, **kwargs)
-        tests = state().tests_by_mangled_function_name
-        known = set(state().duration_by_test)
-        for function, wider in whole_files(tests, known).items():
-            tests[function] = wider
+        cfg = config()
+        with tempfile.TemporaryDirectory() as tmp:
+            out = f"{tmp}/fixtures.json"
+            cmd = [sys.executable, __file__, "--shared-fixtures", out, *cfg.pytest_add_cli_args,
+                   *cfg.pytest_add_cli_args_test_selection]  # fmt: skip
+            subprocess.run(cmd, cwd="mutants", check=True, capture_output=True)
+            with open(out) as f:
+                fixtures = json.load(f)
+        tests, known = state().tests_by_mangled_function_name, set(state().duration_by_test)
+        for function, wider in widen(tests, fixtures).items():
+            tests[function] = wider & known | tests[function]
 
     mutmut_main.collect_or_load_stats = collect_then_widen
 
 
 if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:2] == ["--shared-fixtures"]:  # the collection run of _widen_after_stats
+        import json
+
+        sys.path.insert(0, os.getcwd())  # the mutated copy, as mutmut's own runs import it
+
+        with open(sys.argv[2], "w") as f:
+            json.dump(shared_fixtures(sys.argv[3:]), f)
+        sys.exit(0)
     _repair()
-    if os.environ.get(WHOLE_TEST_FILES) == "1":
+    if os.environ.get(SHARED_FIXTURES) == "1":
         _widen_after_stats()
     cli()
