@@ -620,6 +620,24 @@ def test_central_differences_scale_their_step_with_the_input() -> None:
     np.testing.assert_allclose(cubic, 3 * x[:, 0] ** 2 + h**2, rtol=1e-9)
 
 
+def test_starting_points_follow_the_median_distance_heuristic() -> None:
+    """``initial_thetas``: three fixed starts around ``log(median |x_i - x_j| sqrt(d))`` (its
+    pairs drawn from the generator given), then random ones: log length scales ``N(first,
+    1)``, independent per dimension; noise std log-uniform in [0.03, 0.5]; signal std 1."""
+    from estimator_service.gp.hyper import initial_thetas
+
+    x = np.random.default_rng(7).normal(size=(50, 3)) * [1.0, 2.0, 0.5]
+    starts = np.array(initial_thetas(x, 400, np.random.default_rng(8)))
+    idx = np.random.default_rng(8).integers(0, 50, size=(2000, 2))
+    base = np.log(np.maximum(np.median(np.abs(x[idx[:, 0]] - x[idx[:, 1]]), axis=0), 1e-3) * np.sqrt(3))
+    np.testing.assert_allclose(starts[:3, :3], base + np.log([[1.0], [0.3], [3.0]]), rtol=1e-12)
+    np.testing.assert_allclose(starts[:3, 3:], np.log([[1.0, 0.3], [1.0, 0.1], [1.0, 0.5]]), rtol=1e-12)
+    z, noise = starts[3:, :3] - base, np.exp(starts[3:, 4])
+    assert np.all(starts[3:, 3] == 0.0) and abs(z.mean()) < 0.15 and 0.9 < z.std() < 1.1
+    assert np.all(np.abs(np.corrcoef(z.T)[np.triu_indices(3, 1)]) < 0.2)  # a draw per dimension
+    assert 0.03 <= noise.min() < 0.035 and 0.45 < noise.max() <= 0.5
+
+
 def test_a_gp_conditions_on_a_single_point() -> None:
     rng = np.random.default_rng(2)
     x = rng.normal(size=(40, 2))

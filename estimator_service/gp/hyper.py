@@ -64,9 +64,10 @@ def exact_nll(
 def initial_thetas(x: FloatArray, restarts: int, rng: np.random.Generator) -> list[FloatArray]:
     """Data-driven starting points for standardised data (unit signal variance).
 
-    The first uses per-dimension median pairwise distances times ``sqrt(d)`` and noise
-    ``0.1``; the next two scale the length scales by 0.3 and 3; later ones are random
-    around the first.
+    The first uses per-dimension median pairwise distances (of up to 2,000 random pairs)
+    times ``sqrt(d)`` and noise std 0.3; the next two scale the length scales by 0.3 and 3,
+    with noise std 0.1 and 0.5; later ones draw log length scales from ``N(first, 1)`` and
+    the noise std log-uniformly from 0.03 to 0.5. The signal std starts at 1.
     """
     n, d = x.shape
     idx = rng.integers(0, n, size=(min(2000, n * n), 2))
