@@ -722,6 +722,23 @@ def test_the_heteroscedastic_fit_runs_as_many_noise_rounds_as_asked(toy, iterati
     seen = []
     fit_hetero(x[:40], y[:40, 0], iterations=iterations, restarts=1, max_iter=3, callback=seen.append)
     assert sum(s.model == "hetero" and s.iteration == 1 for s in seen) == iterations
+    # the mean GP's first fit and each round's noise GP: one start each, as asked, reported
+    assert sum(s.model == "exact" and s.iteration == 1 for s in seen) == 1 + iterations
+
+
+def test_a_heteroscedastic_fit_normalises_each_outputs_profile_and_needs_three_points(toy) -> None:
+    """The mean GP's noise profile has geometric mean 1 per output (the homoscedastic noise
+    carries each output's level), the fit without a generator is repeatable, and it needs 3
+    points (2 are refused by name)."""
+    x, y = toy
+    y2 = np.c_[y[:60, 0], 50.0 * y[:60, 1] * (1.0 + np.abs(x[:60, 0]))]  # two noise shapes
+    het = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
+    np.testing.assert_allclose(np.exp(np.log(het.main.noise_profile).mean(axis=1)), 1.0, rtol=1e-9)
+    again = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
+    np.testing.assert_array_equal(again.main.theta, het.main.theta)
+    assert fit_hetero(x[:3], y[:3, 0], iterations=1, restarts=1, max_iter=2).main.alpha.shape == (1, 3)
+    with pytest.raises(ValueError, match="at least 3"):
+        fit_hetero(x[:2], y[:2, 0], iterations=1, restarts=1, max_iter=2)
 
 
 def test_a_constant_column_is_centred_but_not_scaled() -> None:
