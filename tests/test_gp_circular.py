@@ -98,6 +98,8 @@ def test_round_trip_and_bad_files(model, tmp_path: Path) -> None:
         ({"angle_inputs": (2,)}, "angle_inputs"),
         ({"angle_inputs": (1, 1)}, "angle_inputs"),
         ({"angle_output": 3}, "angle_output"),
+        ({"angle_output": 2}, "angle_output"),  # y has columns 0 and 1
+        ({"angle_inputs": (-1,)}, "angle_inputs"),
         ({"angle_output": 0, "period": 0.0}, "period"),
     ],
 )
@@ -105,6 +107,16 @@ def test_bad_arguments_name_the_problem(data, kwargs, match: str) -> None:
     x, y = data
     with pytest.raises(ValueError, match=match):
         fit_circular(x, y, lambda a, b: fit_exact(a, b), **kwargs)
+
+
+def test_the_first_columns_and_a_short_period_are_accepted(data) -> None:
+    """The bounds of the checks above: column 0 is an input or output angle like any other,
+    and any positive period is one (an angle of period 0.5 wraps at +-0.25)."""
+    x, y = data
+    g = fit_circular(x[:30], y[:30], lambda a, b: fit_exact(a, b, max_iter=2), angle_inputs=(0,),
+                     angle_output=0, period=0.5)  # fmt: skip
+    assert g.angle_inputs == (0,) and g.angle_output == 0 and g.period == 0.5
+    assert np.all(np.abs(g.predict(x[:5]).mean[:, 0]) <= 0.25 + 1e-12)
 
 
 class _Linear:
