@@ -218,6 +218,12 @@ def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
         assert model.observe(x).jac is None and np.array_equal(model.observe(x).mean, whole.mean)
     parts = np.concatenate([linear.observe(x).mean, shared.observe(x).mean], axis=1)
     np.testing.assert_array_equal(in_order.observe(x).mean, parts)
+    # placements must cover the observation once: right sizes with a column twice, or the
+    # whole set of columns split in the wrong sizes, are refused
+    twice = (placed[0], np.array([1, 5, 5]))
+    for bad in (twice, (placed[0][:-1], np.array([1, 5, 9, 12]))):
+        with pytest.raises(ValueError, match="cover the observation once"):
+            StackedObservationModel((shared, linear), bad)
 
 
 def test_the_calibration_choices_training_reports_are_read_back_per_kind(tmp_path) -> None:
