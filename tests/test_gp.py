@@ -724,6 +724,10 @@ def test_the_heteroscedastic_fit_runs_as_many_noise_rounds_as_asked(toy, iterati
     assert sum(s.model == "hetero" and s.iteration == 1 for s in seen) == iterations
     # the mean GP's first fit and each round's noise GP: one start each, as asked, reported
     assert sum(s.model == "exact" and s.iteration == 1 for s in seen) == 1 + iterations
+    seen.clear()  # with a hyperparameter subset, each round's refit searches it, then polishes
+    fit_hetero(x[:40], y[:40, 0], iterations=iterations, restarts=1, max_iter=3, hyper_points=20,
+               polish_iter=2, callback=seen.append)  # fmt: skip
+    assert sum(s.model == "hetero" and s.iteration == 1 for s in seen) == 2 * iterations
 
 
 def test_a_heteroscedastic_fit_normalises_each_outputs_profile_and_needs_three_points(toy) -> None:
@@ -734,6 +738,9 @@ def test_a_heteroscedastic_fit_normalises_each_outputs_profile_and_needs_three_p
     y2 = np.c_[y[:60, 0], 50.0 * y[:60, 1] * (1.0 + np.abs(x[:60, 0]))]  # two noise shapes
     het = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
     np.testing.assert_allclose(np.exp(np.log(het.main.noise_profile).mean(axis=1)), 1.0, rtol=1e-9)
+    # the noise GP, shifted per output, gives back that profile at the training inputs
+    level = np.exp(2 * het.main.theta[:, -1]) * het.main.y_scaler.std**2
+    np.testing.assert_allclose(het.noise_var(x[:60]) / level, het.main.noise_profile.T, rtol=1e-9)
     again = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
     np.testing.assert_array_equal(again.main.theta, het.main.theta)
     assert fit_hetero(x[:3], y[:3, 0], iterations=1, restarts=1, max_iter=2).main.alpha.shape == (1, 3)
