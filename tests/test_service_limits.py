@@ -589,6 +589,8 @@ def test_a_tenants_catch_up_share_is_a_part_of_the_services() -> None:
         ValueError, match=r"out of range: tenant_catch_up_share=0.6 \(more than catch_up_share, 0.5\)$"
     ):
         Limits(catch_up_share=0.5, tenant_catch_up_share=0.6)
+    with pytest.raises(ValueError, match=r"out of range: tenant_catch_up_share=-0.1$"):  # not "more than"
+        Limits(catch_up_share=0.5, tenant_catch_up_share=-0.1)
 
 
 def test_the_gate_probability_stays_below_one() -> None:
