@@ -218,6 +218,10 @@ def test_observing_some_columns_equals_the_whole_observation_sliced() -> None:
         assert model.observe(x).jac is None and np.array_equal(model.observe(x).mean, whole.mean)
     parts = np.concatenate([linear.observe(x).mean, shared.observe(x).mean], axis=1)
     np.testing.assert_array_equal(in_order.observe(x).mean, parts)
+    # var=False reaches the GP parts, whose variances are then zeros (the linear part keeps
+    # its noise variance), whole or by columns
+    np.testing.assert_array_equal(stacked.observe(x, var=False).var[:, placed[0]], 0.0)
+    np.testing.assert_array_equal(observe_columns(stacked, x, placed[0][:4], var=False).var, 0.0)
     # placements must cover the observation once: right sizes with a column twice, or the
     # whole set of columns split in the wrong sizes, are refused
     twice = (placed[0], np.array([1, 5, 5]))
@@ -406,7 +410,9 @@ def test_gp_model_wrappers_pass_the_gps_variances_through_by_default() -> None:
         NoiseScaledPrediction(pred, np.ones((1, 1, 2)))  # one scale per output, or per row and output
     obs = GPObservationModel(gp)
     np.testing.assert_allclose(obs.observe(np.c_[x, u]).var, want.var, rtol=1e-12)
-    assert not obs.observe(np.c_[x, u], var=False).var.any()
+    # var=False: the variance skipped and returned as zeros of the mean's shape (the contract)
+    for out in (obs.observe(np.c_[x, u], var=False), pred.predict(x, u, var=False)):
+        assert out.var.shape == (4, 2) and out.var.dtype == np.float64 and not out.var.any()
 
 
 def test_the_odes_dynamics_are_newton_euler() -> None:
