@@ -736,12 +736,12 @@ def test_a_heteroscedastic_fit_normalises_each_outputs_profile_and_needs_three_p
     points (2 are refused by name)."""
     x, y = toy
     y2 = np.c_[y[:60, 0], 50.0 * y[:60, 1] * (1.0 + np.abs(x[:60, 0]))]  # two noise shapes
-    het = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
+    het = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5, hyper_points=40)
     np.testing.assert_allclose(np.exp(np.log(het.main.noise_profile).mean(axis=1)), 1.0, rtol=1e-9)
     # the noise GP, shifted per output, gives back that profile at the training inputs
     level = np.exp(2 * het.main.theta[:, -1]) * het.main.y_scaler.std**2
     np.testing.assert_allclose(het.noise_var(x[:60]) / level, het.main.noise_profile.T, rtol=1e-9)
-    again = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5)
+    again = fit_hetero(x[:60], y2, iterations=1, restarts=1, max_iter=5, hyper_points=40)
     np.testing.assert_array_equal(again.main.theta, het.main.theta)
     assert fit_hetero(x[:3], y[:3, 0], iterations=1, restarts=1, max_iter=2).main.alpha.shape == (1, 3)
     with pytest.raises(ValueError, match="at least 3"):
