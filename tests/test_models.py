@@ -413,6 +413,7 @@ def test_gp_model_wrappers_pass_the_gps_variances_through_by_default() -> None:
     # var=False: the variance skipped and returned as zeros of the mean's shape (the contract)
     for out in (obs.observe(np.c_[x, u], var=False), pred.predict(x, u, var=False)):
         assert out.var.shape == (4, 2) and out.var.dtype == np.float64 and not out.var.any()
+    assert obs.observe(np.c_[x, u]).jac is None and pred.predict(x, u).jac is None  # only when asked
 
 
 def test_the_odes_dynamics_are_newton_euler() -> None:
