@@ -638,6 +638,39 @@ def test_starting_points_follow_the_median_distance_heuristic() -> None:
     assert 0.03 <= noise.min() < 0.035 and 0.45 < noise.max() <= 0.5
 
 
+def test_the_optimiser_keeps_the_best_start_inside_its_box_and_iteration_budget() -> None:
+    """``optimize_theta``: L-BFGS-B from each start inside the bounds, at most ``max_iter``
+    iterations each (each reported with its objective value), the best finite result kept;
+    a failed factorisation (``LinAlgError``) counts as a huge value, not an error.
+    ``random_subset`` takes at least 3 rows."""
+    from estimator_service.gp import hyper
+
+    def rosen(t):
+        f = (1 - t[0]) ** 2 + 100 * (t[1] - t[0] ** 2) ** 2
+        return f, np.array([-2 * (1 - t[0]) - 400 * t[0] * (t[1] - t[0] ** 2), 200 * (t[1] - t[0] ** 2)])
+
+    seen: list = []
+    box = [(-2.0, 0.5), (-2.0, 2.0)]  # the optimum (1, 1) lies outside: x stops at 0.5
+    theta = hyper.optimize_theta(rosen, [np.zeros(2)], box, 200, "r", 3, seen.append)
+    np.testing.assert_allclose(theta, [0.5, 0.25], atol=1e-4)
+    seen.clear()
+    hyper.optimize_theta(rosen, [np.array([-1.2, 1.0])], None, 3, "r", 3, seen.append)
+    assert [s.iteration for s in seen] == [1, 2, 3] and {(s.model, s.output) for s in seen} == {("r", 3)}
+    assert all(np.isfinite(s.objective) for s in seen)
+    # the best start wins, whichever comes first; a worse finite result never replaces it
+    best = hyper.optimize_theta(rosen, [np.ones(2), np.array([-1.2, 1.0])], None, 2, "r", 0, None)
+    np.testing.assert_array_equal(best, np.ones(2))
+
+    def brittle(t):
+        if t[0] > 0.5:
+            raise np.linalg.LinAlgError("not positive definite")
+        return rosen(t)
+
+    theta = hyper.optimize_theta(brittle, [np.zeros(2)], None, 50, "r", 0, None)
+    assert np.all(np.isfinite(theta)) and theta[0] <= 0.5
+    assert len(hyper.random_subset(10, 2, np.random.default_rng(0))) == 3
+
+
 def test_a_gp_conditions_on_a_single_point() -> None:
     rng = np.random.default_rng(2)
     x = rng.normal(size=(40, 2))
