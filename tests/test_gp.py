@@ -669,6 +669,12 @@ def test_the_optimiser_keeps_the_best_start_inside_its_box_and_iteration_budget(
     theta = hyper.optimize_theta(brittle, [np.zeros(2)], None, 50, "r", 0, None)
     assert np.all(np.isfinite(theta)) and theta[0] <= 0.5
     assert len(hyper.random_subset(10, 2, np.random.default_rng(0))) == 3
+    # a weak signal under strong noise: the fit's signal std (standardised units) falls well
+    # below 1 and its noise std near 1, both inside the box
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-3, 3, (120, 1))
+    gp = fit_exact(x, 0.15 * np.sin(x[:, 0]) + rng.normal(size=120), restarts=1, max_iter=60, rng=rng)
+    assert np.exp(gp.theta[0, -2]) < 0.5 and 0.7 < np.exp(gp.theta[0, -1]) < 1.1
 
 
 def test_a_gp_conditions_on_a_single_point() -> None:
