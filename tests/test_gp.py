@@ -677,6 +677,26 @@ def test_the_optimiser_keeps_the_best_start_inside_its_box_and_iteration_budget(
     assert np.exp(gp.theta[0, -2]) < 0.5 and 0.7 < np.exp(gp.theta[0, -1]) < 1.1
 
 
+@pytest.mark.parametrize("polish", [0, 1, 2])
+def test_a_subset_search_is_polished_on_all_rows(toy, monkeypatch, polish: int) -> None:
+    """``learn_thetas`` with a subset: the search evaluates the likelihood on the subset's
+    rows only, then ``polish_iter`` iterations (none for 0) on all rows, each optimisation
+    reporting its output."""
+    from estimator_service.gp import hyper
+
+    x, y = toy
+    rows: list[int] = []
+    real = hyper.exact_nll
+    monkeypatch.setattr(hyper, "exact_nll", lambda t, xs, *a: rows.append(len(xs)) or real(t, xs, *a))
+    seen: list = []
+    subset = hyper.random_subset(len(x), 20, np.random.default_rng(0))
+    hyper.learn_thetas(x, y[:, 1:], [[np.zeros(4)]], max_iter=3, name="q", callback=seen.append,
+                       subset=subset, polish_iter=polish)  # fmt: skip
+    first_all = rows.index(len(x)) if len(x) in rows else len(rows)
+    assert set(rows[:first_all]) == {20} and set(rows[first_all:]) <= {len(x)}
+    assert (first_all < len(rows)) == (polish > 0) and {s.output for s in seen} == {0}
+
+
 def test_a_gp_conditions_on_a_single_point() -> None:
     rng = np.random.default_rng(2)
     x = rng.normal(size=(40, 2))
