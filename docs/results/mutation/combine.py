@@ -139,11 +139,7 @@ def report(res: dict) -> str:
         f"{three(v['killed_ratio'])} | `{v['run']}` | {v['began']} |"
         for m, v in res["modules"].items()
     ]
-    tail = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
-    tail += [
-        f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in res["survivors"]
-    ]
-    return "\n".join([*head, *rows, *tail]) + "\n"
+    return "\n".join([*head, *rows, *summarise.survivors_table(res["survivors"])]) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -240,11 +240,14 @@ def report(res: dict) -> str:
         f"{v['no_tests']} |"
         for m, v in res["modules"].items()
     ]
-    tail = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
-    tail += [
-        f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in res["survivors"]
-    ]
-    return "\n".join([*head, *rows, *tail]) + "\n"
+    return "\n".join([*head, *rows, *survivors_table(res["survivors"])]) + "\n"
+
+
+def survivors_table(survivors: list[dict]) -> list[str]:
+    """The report's section of surviving mutants, one row each with its change and reason."""
+    head = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
+    rows = [f"| `{s['mutant']}` | `{s['change'].replace('|', '/')}` | {s['reason']} |" for s in survivors]
+    return head + rows
 
 
 def _three(x: float | None) -> str:
