@@ -63,6 +63,9 @@ FIRST = "estimator_service.service.limits*"
 MUTANTS, RUN = summarise.MUTANTS, summarise.RUN_RECORD
 SAMPLE = MUTANTS / "sample.json"
 DRAW_KEYS = ("fraction", "seed", "full", "first")
+#: survivors rerun per mutmut call (each call starts afresh: its statistics, the fixtures'
+#: collection, 13 s here, and the fork server; a stopped rerun loses at most one batch)
+RERUN_BATCH = 16
 #: ``[tool.mutmut]`` keys that only decide when a mutant counts as timed out
 TIMEOUT_KEYS = ("timeout_multiplier", "timeout_constant")
 
@@ -185,7 +188,8 @@ def _survivors_again(max_children: int, record: dict, drawn: dict[str, list[str]
     """Run the run's surviving mutants again, each once, against their tests and every test
     sharing a wider-scoped fixture with them (``run_mutmut.py``'s ``SHARED_FIXTURES``: mutmut
     maps a function that only a module- or session-scoped fixture calls to the first test that
-    built the fixture); the record lists them (``survivors_rerun``)."""
+    built the fixture); the record lists them (``survivors_rerun``) after each batch of
+    :data:`RERUN_BATCH`, so a stopped rerun goes on where it stopped."""
     done = set(record.get("survivors_rerun", []))
     mine = {n for names in drawn.values() for n in names}
     survived = [n for names in sample.by_status(frozenset({"survived"})).values() for n in names
@@ -196,9 +200,12 @@ def _survivors_again(max_children: int, record: dict, drawn: dict[str, list[str]
         f"mutate_sample.py: {len(survived)} survivors run again with the tests sharing their fixtures",
         flush=True,
     )
-    _mutmut(max_children, survived, {run_mutmut.SHARED_FIXTURES: "1"})
-    record["survivors_rerun"] = sorted(done | set(survived))
-    RUN.write_text(json.dumps(record, indent=1) + "\n")
+    for i in range(0, len(survived), RERUN_BATCH):
+        batch = survived[i : i + RERUN_BATCH]
+        _mutmut(max_children, batch, {run_mutmut.SHARED_FIXTURES: "1"})
+        done |= set(batch)
+        record["survivors_rerun"] = sorted(done)
+        RUN.write_text(json.dumps(record, indent=1) + "\n")
 
 
 def _new_timeouts(record: dict, settings: dict) -> frozenset[str]:
