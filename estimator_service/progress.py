@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 import sys
 import threading
-import time
 from collections.abc import Sequence
+from time import monotonic
 from typing import TextIO
 
 import numpy as np
@@ -62,7 +62,7 @@ class ProgressBar:
         self._weight_done = 0.0  # with weights: the weight of the units done
         self._stream = stream or sys.stderr
         self._enabled, self._every = enabled, every_s
-        self._t0 = self._last = self._t_done = time.monotonic()  # _t_done: when the share last grew
+        self._t0 = self._last = self._t_done = monotonic()  # _t_done: when the share last grew
         self._postfix = ""
         self._bar = None
         self._lock, self._done = threading.Lock(), threading.Event()
@@ -81,7 +81,7 @@ class ProgressBar:
         """A plain line whenever ``every_s`` passed without one, until the job ends."""
         while not self._done.wait(self._every / 4):
             with self._lock:
-                if self._enabled and time.monotonic() - self._last >= self._every:
+                if self._enabled and monotonic() - self._last >= self._every:
                     self._line()
 
     def update_to(self, n: int, total: int | None = None, postfix: str = "") -> None:
@@ -99,7 +99,7 @@ class ProgressBar:
 
     def _show(self, n: int, postfix: str) -> None:
         if n > self.n:
-            self._t_done = time.monotonic()
+            self._t_done = monotonic()
         delta, self.n = n - self.n, n
         if self._bar is not None:
             if self._cum is not None:
@@ -110,9 +110,9 @@ class ProgressBar:
             if postfix:
                 self._bar.set_postfix_str(postfix, refresh=False)
             self._bar.update(delta)
-        elif self._enabled and time.monotonic() - self._last >= self._every:
+        elif self._enabled and monotonic() - self._last >= self._every:
             with self._lock:
-                if time.monotonic() - self._last >= self._every:  # the heartbeat may have printed
+                if monotonic() - self._last >= self._every:  # the heartbeat may have printed
                     self._line()
 
     def advance(self, k: int = 1, postfix: str = "", *, index: int | None = None) -> None:
@@ -156,7 +156,7 @@ class ProgressBar:
         return max(0.0, whole * (1 - frac) - running)
 
     def _line(self) -> None:
-        self._last = time.monotonic()
+        self._last = monotonic()
         elapsed = self._last - self._t0
         text = f"{self.desc}: {self._count()} {self.unit}s"
         if self.total:

@@ -216,7 +216,7 @@ def test_the_eta_counts_down_while_a_long_unit_runs(monkeypatch) -> None:
     import estimator_service.progress as progress
 
     clock = [0.0]
-    monkeypatch.setattr(progress.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(progress, "monotonic", lambda: clock[0])
     out = io.StringIO()
     with progress.ProgressBar("train", unit="part", stream=out, every_s=3600, weights=[1.0, 6.0, 3.0]) as bar:
         clock[0] = 10.0
