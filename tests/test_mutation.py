@@ -242,11 +242,11 @@ def _stopped_before_the_draw(root: Path, go, done: dict) -> None:
     }
 
 
-def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path) -> None:
+def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path, monkeypatch) -> None:
     """``combine.py``: each module scored by the latest run that ran all its mutants as a
     ``--full`` module; timed-out mutants give the lower bound; survivors take today's reasons;
     a module no run took in full is named, not counted."""
-    sys.path.insert(0, str(SUMMARISE.parent))
+    monkeypatch.syspath_prepend(str(SUMMARISE.parent))
     import combine
 
     def entry(total, killed, timeout, survived, not_run=0):

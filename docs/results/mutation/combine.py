@@ -35,13 +35,18 @@ import summarise  # noqa: E402
 
 COUNTS = ("killed", "timeout", "survived", "no_tests")
 TEST_ADDED = "test added after this run"
+#: what runs made before their record kept the timeout settings were measured with
+UNRECORDED_TIMEOUTS = "timeout_constant 1 s (mutmut's), multiplier 5 or 15"
 
 
 def runs(folder: Path) -> list[tuple[Path, dict]]:
     """Every run's ``results.json`` below ``folder`` (not a combined one), oldest first."""
     found = []
     for path in sorted(folder.rglob("results.json")):
-        doc = json.loads(path.read_text())
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"combine.py: {path} is not a readable results.json: {exc}") from None
         if not doc.get("combined") and "run" in doc and "modules" in doc:
             found.append((path.parent, doc))
     return sorted(found, key=lambda fd: fd[1]["run"].get("began", ""))
@@ -69,15 +74,12 @@ def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: 
     chosen = latest_full(found, root)
     modules = sorted({m for _, doc in found for m in doc["modules"]})
     out_modules, survivors = {}, []
-    for module in modules:
-        if module not in chosen:
-            continue
-        folder, entry, doc = chosen[module]
+    for module, (folder, entry, doc) in sorted(chosen.items()):
         out_modules[module] = {
             **{k: entry[k] for k in ("total", *COUNTS)},
             "killed_ratio": entry["killed_ratio"],
             "run": str(folder), "began": doc["run"].get("began"),
-            "timeouts": doc["run"].get("timeouts", "timeout_constant 1 s (mutmut's), multiplier 5 or 15"),
+            "timeouts": doc["run"].get("timeouts", UNRECORDED_TIMEOUTS),
             "source_current": entry.get("sha256") == current.get(module),
         }  # fmt: skip
         survivors += [
@@ -155,8 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     modules = {m for _, doc in found for m in doc["modules"]}
     current = {m: summarise.source_hash(m) for m in modules if Path(m).is_file()}
     res = combine(found, reasons, args.folder, current)
-    (args.folder / "results.json").write_text(summarise.json_text(res, indent=1) + "\n")
-    (args.folder / "report.md").write_text(report(res))
+    summarise.write_results(args.folder, res, report(res))
     keys = ("killed_ratio", "killed_ratio_without_timeouts", "killed_ratio_with_tests_added", "total",
             "modules_in_full", "survivors_unexplained")  # fmt: skip
     print(json.dumps({k: res[k] for k in keys}))

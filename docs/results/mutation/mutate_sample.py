@@ -47,9 +47,10 @@ import shutil
 import subprocess
 import sys
 import time
-import tomllib
 from importlib.metadata import version
 from pathlib import Path
+
+from estimator_service.files import atomic_write_text
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # sample.py and summarise.py, beside this script
@@ -99,11 +100,16 @@ def fingerprint(root: Path = Path(".")) -> str:
     return h.hexdigest()
 
 
-def timeouts(root: Path = Path(".")) -> dict[str, float]:
-    """``[tool.mutmut]``'s timeout settings, mutmut's defaults where unset."""
-    table = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["mutmut"]
-    defaults = {"timeout_multiplier": 15.0, "timeout_constant": 1.0}  # mutmut 3.8's
-    return {k: float(table.get(k, defaults[k])) for k in TIMEOUT_KEYS}
+def timeouts() -> dict[str, float]:
+    """``[tool.mutmut]``'s timeout settings as mutmut reads them (its defaults where unset)."""
+    from mutmut.configuration import config
+
+    return {k: float(getattr(config(), k)) for k in TIMEOUT_KEYS}
+
+
+def _save(record: dict) -> None:
+    """Write the run's record ``mutants/run.json`` whole or not at all."""
+    atomic_write_text(RUN, json.dumps(record, indent=1) + "\n")
 
 
 def _mutmut(max_children: int, names: list[str], env: dict[str, str] | None = None) -> None:
@@ -205,7 +211,7 @@ def _survivors_again(max_children: int, record: dict, drawn: dict[str, list[str]
         _mutmut(max_children, batch, {run_mutmut.SHARED_FIXTURES: "1"})
         done |= set(batch)
         record["survivors_rerun"] = sorted(done)
-        RUN.write_text(json.dumps(record, indent=1) + "\n")
+        _save(record)
 
 
 def _new_timeouts(record: dict, settings: dict) -> frozenset[str]:
@@ -218,7 +224,7 @@ def _new_timeouts(record: dict, settings: dict) -> frozenset[str]:
           flush=True)  # fmt: skip
     record["timeouts_before"] = [*record.get("timeouts_before", []), record.get("timeouts")]
     record["timeouts"] = settings["timeouts"]
-    RUN.write_text(json.dumps(record, indent=1) + "\n")
+    _save(record)
     return frozenset({"timeout"})
 
 
@@ -234,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(MUTANTS, ignore_errors=True)
         MUTANTS.mkdir()
         record = {**settings, "began": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
-        RUN.write_text(json.dumps(record, indent=1) + "\n")
+        _save(record)
     again = _new_timeouts(record, settings)
     first: list[str] = []  # --first mutants to run again with the draw (new timeout settings)
     if not SAMPLE.is_file():

@@ -28,18 +28,24 @@ docs/results/mutation/run_mutmut.py run --max-children 2``.
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
+import tempfile
 from collections import defaultdict
 from datetime import datetime
 
 import mutmut.__main__ as mutmut_main
 from mutmut.__main__ import cli
+from mutmut.configuration import config
 from mutmut.state import state
 from mutmut.workers import isolation
 
 #: environment variable: widen each function's tests by the tests sharing their fixtures
 SHARED_FIXTURES = "SHARED_FIXTURES"
 SCOPES = ("class", "module", "package", "session")  # fixtures built once for several tests
+COLLECT_TIMEOUT_S = 600  # the collection run (13 s on this repository's 586 tests)
 
 
 def _wait_for_result(self: isolation.ForkRunner, timeout: float | None = None) -> isolation.MutantResult:
@@ -104,27 +110,28 @@ def shared_fixtures(args: list[str]) -> dict[str, list[str]]:
     return collector.found
 
 
+def _collect_fixtures() -> dict[str, list[str]]:
+    """:func:`shared_fixtures` of mutmut's copy of the tests, in a process of its own."""
+    cfg = config()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = f"{tmp}/fixtures.json"
+        cmd = [sys.executable, __file__, "--shared-fixtures", out, *cfg.pytest_add_cli_args,
+               *cfg.pytest_add_cli_args_test_selection]  # fmt: skip
+        run = subprocess.run(cmd, cwd="mutants", capture_output=True, text=True, timeout=COLLECT_TIMEOUT_S)
+        if run.returncode != 0:
+            raise SystemExit(f"run_mutmut.py: collecting the tests' fixtures failed:\n{run.stdout[-2000:]}"
+                             f"{run.stderr[-2000:]}")  # fmt: skip
+        with open(out) as f:
+            return json.load(f)
+
+
 def _widen_after_stats() -> None:
     """Widen mutmut's map of tests (:func:`widen`) each time it collects or loads it."""
-    import json
-    import subprocess
-    import sys
-    import tempfile
-
-    from mutmut.configuration import config
-
     collect = mutmut_main.collect_or_load_stats
 
     def collect_then_widen(*args, **kwargs):
         collect(*args, **kwargs)
-        cfg = config()
-        with tempfile.TemporaryDirectory() as tmp:
-            out = f"{tmp}/fixtures.json"
-            cmd = [sys.executable, __file__, "--shared-fixtures", out, *cfg.pytest_add_cli_args,
-                   *cfg.pytest_add_cli_args_test_selection]  # fmt: skip
-            subprocess.run(cmd, cwd="mutants", check=True, capture_output=True)
-            with open(out) as f:
-                fixtures = json.load(f)
+        fixtures = _collect_fixtures()
         tests, known = state().tests_by_mangled_function_name, set(state().duration_by_test)
         for function, wider in widen(tests, fixtures).items():
             tests[function] = wider & known | tests[function]
@@ -133,11 +140,7 @@ def _widen_after_stats() -> None:
 
 
 if __name__ == "__main__":
-    import sys
-
-    if sys.argv[1:2] == ["--shared-fixtures"]:  # the collection run of _widen_after_stats
-        import json
-
+    if sys.argv[1:2] == ["--shared-fixtures"]:  # the collection run of _collect_fixtures
         sys.path.insert(0, os.getcwd())  # the mutated copy, as mutmut's own runs import it
 
         with open(sys.argv[2], "w") as f:

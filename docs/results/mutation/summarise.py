@@ -40,7 +40,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from estimator_service.files import json_text
+from estimator_service.files import atomic_write_text, json_text
 
 HERE = Path(__file__).resolve().parent
 KILLED = {"killed", "timeout", "segfault", "caught by type check"}
@@ -243,6 +243,13 @@ def report(res: dict) -> str:
     return "\n".join([*head, *rows, *survivors_table(res["survivors"])]) + "\n"
 
 
+def write_results(folder: Path, res: dict, text: str) -> None:
+    """``results.json`` and ``report.md`` in ``folder``, each written whole or not at all."""
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(folder / "results.json", json_text(res, indent=1) + "\n")
+    atomic_write_text(folder / "report.md", text)
+
+
 def survivors_table(survivors: list[dict]) -> list[str]:
     """The report's section of surviving mutants, one row each with its change and reason."""
     head = ["", "## Surviving mutants", "", "| mutant | change | reason |", "|---|---|---|"]
@@ -297,9 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     res = summarise(reasons, sample, earlier)
     if RUN_RECORD.is_file():
         res = {**res, "run": json.loads(RUN_RECORD.read_text())}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json_text(res, indent=1) + "\n")
-    (args.out / "report.md").write_text(report(res))
+    write_results(args.out, res, report(res))
     keys = ("killed_ratio", "killed", "timeout", "survived", "no_tests", "not_run", "total", "run_fraction",
             "survivors_unexplained")  # fmt: skip
     est = {"estimated_killed_ratio": res["estimate"]["killed_ratio"]} if "estimate" in res else {}
