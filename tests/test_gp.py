@@ -80,6 +80,29 @@ def test_sparse_nll_gradient_including_pseudo_inputs(toy) -> None:
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+def test_sparse_nll_gradient_counts_the_jitter_of_an_ill_conditioned_kmm(toy, monkeypatch) -> None:
+    """The jitter :func:`robust_cholesky` adds to an ill-conditioned ``K_mm`` (clustered
+    pseudo-inputs) is part of the objective: the gradient counts it. Forced here to 1e-3 of
+    the signal variance, so that its effect is far above the finite differences' error."""
+    import estimator_service.gp.sparse as sparse_module
+
+    real = sparse_module.robust_cholesky
+
+    def jittered(k: np.ndarray, max_tries: int = 8) -> tuple[np.ndarray, float]:
+        diag = np.diag(k)
+        if not np.allclose(diag, diag[0], rtol=1e-9, atol=0.0):  # B, not K_mm (diagonal sf^2)
+            return real(k, max_tries)
+        return np.linalg.cholesky(k + 1e-3 * diag[0] * np.eye(len(k))), 1e-3 * diag[0]
+
+    monkeypatch.setattr(sparse_module, "robust_cholesky", jittered)
+    x, y = toy
+    m = 6
+    params = np.concatenate([[0.1, 0.4, 0.2, math.log(0.3)], np.random.default_rng(0).uniform(-2, 2, m * 2)])
+    _, grad = sparse_nll(params, x, y[:, 0], m)
+    fd = central_diff(lambda p: sparse_nll(p, x, y[:, 0], m)[0], params)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("queries", [3, 41])  # all outputs at once, and output by output (> 32)
 @pytest.mark.parametrize("kind", ["exact", "sparse", "hetero", "enhanced"])
 def test_mean_jacobian_matches_finite_differences(models, kind: str, queries: int) -> None:
@@ -97,6 +120,9 @@ def test_mean_jacobian_matches_finite_differences(models, kind: str, queries: in
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6)
     assert gp.predict(x0).jac is None  # a Jacobian only when asked for, on either path
     assert gp.predict(x0, return_var=False).var is None  # and a variance too
+    np.testing.assert_allclose(
+        gp.predict(x0, return_var=False, return_jac=True).jac, jac, rtol=1e-10, atol=1e-12
+    )
 
 
 def test_an_exact_gp_with_a_noise_profile_is_the_closed_form_posterior() -> None:
@@ -357,6 +383,9 @@ def test_sparse_with_pseudo_inputs_at_training_points_equals_exact(toy, queries:
         np.testing.assert_allclose(u, v, rtol=1e-6, atol=1e-8)
     nll_sparse = sparse_nll(np.concatenate([theta[0], x.ravel()]), x, y[:, 0], 40)[0]
     assert nll_sparse == pytest.approx(exact_nll(theta[0], x, y[:, 0])[0], rel=1e-8)
+    for arr in (sparse.theta, sparse.pseudo_inputs, sparse.beta, sparse.chol_mm_t, sparse.chol_b_t):
+        with pytest.raises(ValueError, match="read-only"):  # a frozen posterior
+            arr.flat[0] = 0.0
 
 
 def test_sparse_fit_is_close_to_exact_on_smooth_data(models, toy) -> None:
@@ -446,6 +475,44 @@ def test_exact_and_heteroscedastic_fits_draw_from_the_generator_they_are_given(t
     np.testing.assert_array_equal(*unseeded)
 
 
+def test_a_sparse_fit_starts_from_distinct_training_inputs_drawn_by_its_generator(toy, monkeypatch) -> None:
+    """Each output's search starts once per restart inside the hyperparameter box (the
+    pseudo-inputs unbounded), its pseudo-inputs distinct standardised training inputs drawn
+    by ``rng`` (70 of 80: a draw with replacement would repeat one); fewer training points
+    than pseudo-inputs is refused by name."""
+    import estimator_service.gp.sparse as sparse_module
+    from estimator_service.gp.hyper import theta_bounds
+
+    real, calls = sparse_module.optimize_theta, []
+
+    def spy(objective, starts, bounds, *rest):
+        calls.append((starts, bounds))
+        return real(objective, starts, bounds, *rest)
+
+    monkeypatch.setattr(sparse_module, "optimize_theta", spy)
+    x, y = toy
+    m, d = 70, 2
+
+    def fit(seed: int, restarts: int = 1) -> SparseGP:
+        return fit_sparse(
+            x, y[:, 0], n_pseudo=m, restarts=restarts, max_iter=1, rng=np.random.default_rng(seed)
+        )
+
+    gp = fit(3)
+    (starts, bounds), xs = calls[-1], gp.x_scaler.apply(x)
+    assert len(starts) == 1 and bounds == theta_bounds(d) + [(None, None)] * (m * d)
+    z0 = starts[0][d + 2 :].reshape(m, d)
+    assert len(np.unique(z0, axis=0)) == m
+    assert all(np.any(np.all(xs == row, axis=1)) for row in z0)  # each a training input
+    fit(4)
+    assert not np.array_equal(calls[-1][0][0][d + 2 :], z0.ravel())  # another generator, another draw
+    fit(4, restarts=3)
+    assert len(calls[-1][0]) == 3
+    np.testing.assert_array_equal(fit(3).pseudo_inputs, gp.pseudo_inputs)  # the same seed, the same fit
+    with pytest.raises(ValueError, match="need at least 70 training points, got 60"):
+        fit_sparse(x[:60], y[:60, 0], n_pseudo=m, max_iter=1)
+
+
 # -- persistence ----------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["exact", "sparse", "hetero", "enhanced"])
 def test_save_load_round_trips_exactly(models, kind: str, tmp_path: Path) -> None:
@@ -515,18 +582,22 @@ def test_bad_queries_raise(models) -> None:
 def test_sparse_inverse_factor_variance_matches_the_solve_on_a_near_noiseless_gp(queries: int) -> None:
     """The sparse GP's stacked ``L^-1`` products against its per-output triangular solves,
     noise 4e-7 of the signal, 50 pseudo-inputs at training points and queries at and
-    between training points: within rounding of the solve's."""
+    between training points: within rounding of the solve's, each output with its own
+    length scales and signal variance, Jacobians included."""
     rng = np.random.default_rng(12)
     x = rng.uniform(-2, 2, (400, 3))
     y = np.stack([np.sin(x @ np.array([1.0, -0.7, 0.4])), np.cos(x[:, 0])], axis=1)
     xs, ys = identity_scalers(3, 2)
-    theta = np.array([[math.log(0.9), math.log(1.2), math.log(1.5), 0.0, 0.5 * math.log(4e-7)]] * 2)
+    log_sf = np.array([[0.0], [0.4]])
+    theta = np.hstack([np.log([[0.9, 1.2, 1.5], [1.3, 0.8, 1.1]]), log_sf, log_sf + 0.5 * math.log(4e-7)])
     fast = SparseGP.from_params(x, y, theta, np.stack([x[:50], x[50:100]]), xs, ys)
     slow = SparseGP(fast.x_scaler, fast.y_scaler, fast.theta, fast.pseudo_inputs, fast.beta,
                     fast.chol_mm_t, fast.chol_b_t, inverse=False)  # fmt: skip
     assert fast.projection() is not None  # well enough conditioned to be used
     q = np.concatenate([x[: queries // 2], rng.uniform(-2, 2, (queries - queries // 2, 3))])
     _same_up_to_rounding(fast, slow, q, mean_rtol=1e-12)  # the same sum, in another order
+    jac_fast, jac_slow = (gp.predict(q, return_jac=True).jac for gp in (fast, slow))
+    np.testing.assert_allclose(jac_fast, jac_slow, rtol=1e-9, atol=1e-12)
 
 
 def test_batch_prediction_does_not_depend_on_the_thread_count() -> None:
