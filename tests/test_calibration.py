@@ -27,6 +27,7 @@ from estimator_service.models.calibration import (
     CALIBRATION_FILE,
     NoiseScaledObservation,
     NoiseScaledPrediction,
+    read_adaptive,
     read_noise_scales,
     read_observation_scales,
     read_process_scales,
@@ -46,8 +47,14 @@ def test_scaled_model_scales_only_the_variance() -> None:
     np.testing.assert_array_equal(b.jac, a.jac)
     np.testing.assert_allclose(b.var, 3.0 * a.var)
     assert scaled.state_dim == 2 and scaled.control_dim == 1
-    with pytest.raises(ValueError, match="noise scale"):
-        NoiseScaledPrediction(base, 0.0)
+    assert scaled.predict(x, u).jac is None  # a Jacobian only when asked for
+    floored = NoiseScaledPrediction(base, 3.0, floor=np.array([0.5, 1e-9]))  # the floor raises, never lowers
+    np.testing.assert_allclose(floored.predict(x, u).var, [[0.5, 0.6], [0.5, 0.6]])
+    capped = NoiseScaledPrediction(base, 3.0, ceiling=[0.25, None])  # JSON null: no ceiling
+    np.testing.assert_allclose(capped.predict(x, u).var, [[0.25, 0.6], [0.25, 0.6]])
+    for bad in (0.0, np.array([1.0, 2.0, 3.0]), np.ones((2, 3)), np.ones((1, 1, 2))):
+        with pytest.raises(ValueError, match="noise scale"):
+            NoiseScaledPrediction(base, bad)
 
 
 def test_scales_file_round_trip_merge_and_errors(tmp_path: Path) -> None:
@@ -62,9 +69,10 @@ def test_scales_file_round_trip_merge_and_errors(tmp_path: Path) -> None:
     assert {k: v.tolist() for k, v in read_process_scales(tmp_path).items()} == {"gp": [3.0, 0.5, 2.0],
                                                                                    "egp": [4.0]}  # fmt: skip
     assert read_noise_scales(tmp_path) == {"gp": 2.0, "param": 4.5}
-    (tmp_path / CALIBRATION_FILE).write_text('{"noise_scale": {"gp": -1}}')
-    with pytest.raises(ValueError, match="finite and > 0"):
-        read_noise_scales(tmp_path)
+    for bad in (-1, 0):
+        (tmp_path / CALIBRATION_FILE).write_text(json.dumps({"noise_scale": {"gp": bad}}))
+        with pytest.raises(ValueError, match="finite and > 0"):
+            read_noise_scales(tmp_path)
     (tmp_path / CALIBRATION_FILE).write_text("[1, 2]")
     with pytest.raises(ValueError, match="JSON object"):
         read_noise_scales(tmp_path)
@@ -331,6 +339,13 @@ def test_scaled_observation_scales_each_output_variance() -> None:
             NoiseScaledObservation(base, bad)
     listed = NoiseScaledObservation(base, [2, 5])  # any sequence, stored as floats
     assert isinstance(listed.scale, np.ndarray) and listed.scale.dtype == np.float64
+    floored = NoiseScaledObservation(base, np.array([2.0, 5.0]), floor=np.array([0.5, 0.5]))
+    np.testing.assert_allclose(floored.observe(x).var, np.maximum(a.var * [2.0, 5.0], 0.5))
+    cols = np.array([1])  # some columns: the whole observation's, sliced
+    part = floored.observe_columns(x, cols)
+    assert part.jac is None  # a Jacobian only when asked for
+    np.testing.assert_allclose(part.var, floored.observe(x).var[:, cols])
+    np.testing.assert_array_equal(floored.observe_columns(x, cols, jac=True).jac, a.jac[:, cols])
 
 
 def test_observation_calibration_is_the_held_out_standardised_residual(tmp_path: Path) -> None:
@@ -442,6 +457,8 @@ def test_the_calibrations_choice_of_the_plain_filter_reaches_every_filter_builde
     assert adaptation_defaults(tmp_path, "gp") == {"adapt_reference": 0.5, "adapt_rate": 0.0}
     assert adaptation_defaults(tmp_path, "egp") == {"adapt_reference": 0.4}
     assert adaptation_defaults(tmp_path, "sparse") == {}
+    write_noise_scales(tmp_path, {}, adaptive={"sparse": True})  # merged with the kinds already chosen
+    assert read_adaptive(tmp_path) == {"gp": False, "egp": True, "sparse": True}
     (tmp_path / CALIBRATION_FILE).write_text('{"adaptive": {"gp": "no"}}')
     with pytest.raises(ValueError, match="'adaptive' must be"):
         adaptation_defaults(tmp_path, "gp")
@@ -524,7 +541,7 @@ def test_a_bad_nis_reference_is_refused_before_anything_is_written(tmp_path: Pat
 
 def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format(tmp_path: Path) -> None:
     """Each reader's error for values of the wrong kind says which file, which section and
-    what it expects; a nested list of observation scales reads as the flat list."""
+    what it expects; a nested list of observation or process scales reads as the flat list."""
     from estimator_service.models.calibration import (
         CALIBRATION_FILE,
         NIS_REFERENCE,
@@ -535,6 +552,7 @@ def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format
 
     path = tmp_path / CALIBRATION_FILE
     for key, read, want in (
+        ("noise_scale", read_noise_scales, "{kind: number}"),
         ("process_noise_scale", read_process_scales, "{kind: [numbers]}"),
         ("observation_noise_scale", read_observation_scales, "{kind: [numbers]}"),
         (NIS_REFERENCE, read_nis_reference, "{kind: number}"),
@@ -543,8 +561,10 @@ def test_a_malformed_calibration_section_names_the_file_the_field_and_its_format
         with pytest.raises(ValueError) as err:
             read(tmp_path)
         assert CALIBRATION_FILE in str(err.value) and f"{{'{key}': {want}}}" in str(err.value)
-    path.write_text(json.dumps({"observation_noise_scale": {"gp": [[1.0, 2.0], [3.0, 4.0]]}}))
-    np.testing.assert_array_equal(read_observation_scales(tmp_path)["gp"], [1.0, 2.0, 3.0, 4.0])
+    for key, read in (("observation_noise_scale", read_observation_scales),
+                      ("process_noise_scale", read_process_scales)):  # fmt: skip
+        path.write_text(json.dumps({key: {"gp": [[1.0, 2.0], [3.0, 4.0]]}}))
+        np.testing.assert_array_equal(read(tmp_path)["gp"], [1.0, 2.0, 3.0, 4.0])
 
 
 @pytest.mark.parametrize("refit", [False, True])
