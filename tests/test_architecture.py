@@ -58,6 +58,22 @@ def _graph() -> dict[str, set[str]]:
     return {_module_name(p): _imports(p, modules) for p in files}
 
 
+def test_every_pointer_to_a_measurement_names_a_section_of_it() -> None:
+    """Figures from particular runs live in ``docs/measurements.md``; the code points to them
+    as ``docs/measurements.md#anchor``, and each anchor is there (a renamed section would
+    leave a pointer to nothing)."""
+    import re
+
+    text = (ROOT / "docs" / "measurements.md").read_text(encoding="utf-8")
+    anchors = set(re.findall(r'<a id="([a-z0-9-]+)"></a>', text))
+    files = [p for pkg in (*PACKAGES, "benchmarks") for p in (ROOT / pkg).rglob("*.py")]
+    pointer = re.compile(r"docs/measurements\.md#([a-z0-9-]+)")
+    pointers = {(p.relative_to(ROOT).as_posix(), a) for p in [*files, ROOT / "pyproject.toml"]
+                for a in pointer.findall(p.read_text(encoding="utf-8"))}  # fmt: skip
+    assert len(pointers) >= 10
+    assert {(f, a) for f, a in pointers if a not in anchors} == set()
+
+
 def test_imports_follow_the_one_way_flow() -> None:
     bad = []
     for mod, deps in _graph().items():

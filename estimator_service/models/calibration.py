@@ -11,9 +11,8 @@ the models in ``calibration.json`` (``noise_scale`` times ``process_noise_scale`
 applied by :func:`estimator_service.factory.load_models`.
 
 Observation GPs are overconfident in another way: their variance is smallest on their own
-training frames, and held-out states lie between them (paper-size GP, first held-out blimp
-block: RMS ellipse-position error 2.3-2.5x the RMS predicted standard deviation for one
-camera).
+training frames, and held-out states lie between them (measured:
+docs/measurements.md#observation-gp-overconfidence).
 A particle filter weights by that likelihood, so a too-narrow one leaves a handful of
 particles (:func:`estimator_service.calibrate.calibrate_observation` measures it on blocks of
 the training flight, with observation models fitted without them; one scale per output).
