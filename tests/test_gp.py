@@ -554,6 +554,45 @@ def test_malformed_model_files_are_rejected_naming_the_file_and_field(models, tm
         load_gp(egp)
 
 
+@pytest.mark.parametrize("kind", ["exact", "sparse", "hetero"])
+def test_every_array_of_a_model_file_missing_or_misshapen_is_named_with_the_file(
+    models, kind: str, tmp_path: Path
+) -> None:
+    """Each float array of a saved GP (nested ones by their prefix), removed (but the optional
+    noise profile) or one entry short on its last axis, is refused with the file's name first
+    and then the array or the shapes that disagree; arrays of another float precision load
+    as float64, and what a GP keeps besides its posterior (the heteroscedastic GP's noise
+    profile, none for a plain GP) comes back as saved."""
+    path = save_gp(models[kind], tmp_path / "good.npz")
+    arrays = dict(np.load(path, allow_pickle=False))
+    floats = [k for k, v in arrays.items() if v.dtype == np.float64]
+    assert len(floats) >= 8
+    bad = tmp_path / "bad.npz"
+    for key in floats:
+        short = arrays[key][..., :-1] if arrays[key].shape[-1] > 1 else arrays[key][..., None]
+        cases = [({**arrays, key: short}, "inconsistent shapes: ")]
+        if not key.endswith("noise_profile"):  # optional: a plain exact GP has none
+            cases.append(({k: v for k, v in arrays.items() if k != key}, f"missing array '{key}'"))
+        for content, says in cases:
+            np.savez(bad, **content)
+            with pytest.raises(ModelFileError) as err:
+                load_gp(bad)
+            message = str(err.value)
+            assert message.startswith(f"model file {str(bad)!r}: ") and says in message, message
+            assert "None" not in message, message  # the shapes that disagree, named
+    np.savez(bad, **{k: v.astype(np.float32) if k in floats else v for k, v in arrays.items()})
+    single = load_gp(bad)
+    assert single.predict(np.zeros((1, 2))).mean.dtype == np.float64
+    back = load_gp(path)
+    inner = (back.main, back.noise) if kind == "hetero" else (back,)
+    kept = (models[kind].main, models[kind].noise) if kind == "hetero" else (models[kind],)
+    for gp, want in zip(inner, kept, strict=True):
+        if isinstance(want, ExactGP) and want.noise_profile is not None:
+            np.testing.assert_array_equal(gp.noise_profile, want.noise_profile)
+        elif isinstance(want, ExactGP):
+            assert gp.noise_profile is None
+
+
 # -- bad input --------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("x", "y", "match"),
