@@ -593,6 +593,40 @@ def test_every_array_of_a_model_file_missing_or_misshapen_is_named_with_the_file
             assert gp.noise_profile is None
 
 
+def test_hostile_gp_files_are_refused_by_name_at_no_cost(models, tmp_path: Path) -> None:
+    """A file declaring a terabyte array is refused before anything is read; a pickled array
+    (code a load would run) is never unpickled; a ``__format__`` that is not one integer, a
+    heteroscedastic GP whose parts are not both exact GPs or differ in outputs: each a
+    :class:`ModelFileError` naming the file and the fault."""
+    from tests.hostile_files import npz_declaring
+
+    bad = tmp_path / "bad.npz"
+
+    def refused(match: str) -> None:
+        with pytest.raises(ModelFileError, match=rf"^model file '.*bad\.npz': .*{match}"):
+            load_gp(bad)
+
+    npz_declaring(bad, "theta", (10**12,), {"__format__": np.array(1)})
+    refused("declares 8000000000000 bytes")
+    exact = dict(np.load(save_gp(models["exact"], tmp_path / "exact.npz"), allow_pickle=False))
+    npz_declaring(bad, "unused", (1,), {**exact, "__kind__": np.array("exact", dtype=object)})
+    refused("unreadable")
+    np.savez(bad, **{**exact, "__format__": np.array([1, 2])})
+    refused("'__format__' must be one integer")
+    hetero = dict(np.load(save_gp(models["hetero"], tmp_path / "hetero.npz"), allow_pickle=False))
+    sparse = dict(np.load(save_gp(models["sparse"], tmp_path / "sparse.npz"), allow_pickle=False))
+    for part in ("main/", "noise/"):
+        swapped = {k: v for k, v in hetero.items() if not k.startswith(part)}
+        np.savez(bad, **swapped, **{part + k: v for k, v in sparse.items() if k != "__format__"})
+        refused("heteroscedastic parts must be exact GPs")
+    one_output = {k: v[:1] if k.split("/")[-1] in ("theta", "alpha", "y_mean", "y_std") else v
+                  for k, v in hetero.items()}  # fmt: skip
+    one_output["noise/chol_t"] = hetero["noise/chol_t"][:1]
+    np.savez(bad, **{k: v for k, v in hetero.items() if not k.startswith("noise/")},
+             **{k: v for k, v in one_output.items() if k.startswith("noise/")})  # fmt: skip
+    refused("main and noise GPs differ in outputs")
+
+
 # -- bad input --------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("x", "y", "match"),

@@ -20,6 +20,7 @@ from estimator_service.flight import FlightError, load_csv, load_log, make_fligh
 from estimator_service.models import LinearGaussianObservation, LinearGaussianPrediction
 from estimator_service.store import ModelStoreError, check_folder, model_version, seal, writing
 from estimator_service.system import DescriptionError, System
+from tests.hostile_files import npz_declaring
 from tests.robot_log import SYSTEM, write_robot_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -203,21 +204,6 @@ def test_make_flight_checks_shapes() -> None:
         make_flight(s, np.arange(3.0), np.zeros((3, 4)), np.zeros((3, 2)), np.zeros((3, 3)), np.ones((3, 2)))
 
 
-def _npz_declaring(path: Path, name: str, shape: tuple[int, ...], extra: dict | None = None) -> None:
-    """An ``.npz`` whose member ``name`` declares ``shape`` (float64) but stores 8 bytes."""
-    import io
-    import zipfile
-
-    head = io.BytesIO()
-    np.lib.format.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": shape})
-    with zipfile.ZipFile(path, "w") as z:
-        z.writestr(f"{name}.npy", head.getvalue() + b"\0" * 8)
-        for k, v in (extra or {}).items():
-            buf = io.BytesIO()
-            np.save(buf, v)
-            z.writestr(f"{k}.npy", buf.getvalue())
-
-
 def test_hostile_model_and_flight_files_are_refused_by_name(tmp_path: Path) -> None:
     """A model file edited in place at the same size is refused on load (every file's hash is
     checked, not only on request); NaN hyperparameters, a ``__format__`` that is not one
@@ -253,10 +239,10 @@ def test_hostile_model_and_flight_files_are_refused_by_name(tmp_path: Path) -> N
     np.savez(tmp_path / "fmt.npz", **{**arrays, "__format__": np.array([1, 2])})
     with pytest.raises(ModelFileError, match="'__format__' must be one integer"):
         load_gp(tmp_path / "fmt.npz")
-    _npz_declaring(tmp_path / "huge.npz", "theta", (10**12,), {"__format__": np.array(1)})
+    npz_declaring(tmp_path / "huge.npz", "theta", (10**12,), {"__format__": np.array(1)})
     with pytest.raises(ModelFileError, match="declares 8000000000000 bytes"):
         load_gp(tmp_path / "huge.npz")
-    _npz_declaring(tmp_path / "huge_flight.npz", "state", (10**11, 5))
+    npz_declaring(tmp_path / "huge_flight.npz", "state", (10**11, 5))
     with pytest.raises(FlightError, match="array 'state' declares"):
         load_flight(tmp_path / "huge_flight.npz")
 

@@ -380,10 +380,16 @@ def test_the_odes_kinematics_are_rigid_body_rates() -> None:
 
 
 def test_the_ode_fit_checks_its_shapes_and_keeps_the_measured_constants(flight) -> None:
+    """Shapes and non-finite values refused by name; the measured constants kept."""
     x, u, xn = flight["x"][:60], flight["u"][:60], flight["x_next"][:60]
     for bad in ((x[:, :11], u, xn[:, :11]), (x, u[:, :2], xn), (x, u, xn[:-1])):
         with pytest.raises(ValueError, match=r"need x \(N, 12\)"):
             fit_blimp_ode(*bad)
+    for which in range(3):  # a NaN or an infinity in any of the three arrays
+        arrays = [x.copy(), u.copy(), xn.copy()]
+        arrays[which][7, 1] = np.nan if which != 1 else np.inf
+        with pytest.raises(ValueError, match="NaN or Inf"):
+            fit_blimp_ode(*arrays)
     ode = fit_blimp_ode(x, u, xn, mass=0.5, tail_arm=0.7, dt=0.25, max_nfev=5)
     assert (ode.mass, ode.tail_arm, ode.dt) == (0.5, 0.7, 0.25)
 
