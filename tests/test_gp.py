@@ -254,7 +254,7 @@ def _same_up_to_rounding(fast, slow, q: np.ndarray, mean_rtol: float = 0.0) -> N
     absolute: targets of order one)."""
     v_fast = fast.predict(q, include_noise=False).var
     v_slow = slow.predict(q, include_noise=False).var
-    assert np.all(v_fast >= 0)
+    assert np.all(v_fast >= 0) and np.all(v_slow >= 0)
     np.testing.assert_allclose(v_fast, v_slow, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(fast.predict(q).mean, slow.predict(q).mean, rtol=mean_rtol, atol=mean_rtol)
 
@@ -583,6 +583,8 @@ def test_every_array_of_a_model_file_missing_or_misshapen_is_named_with_the_file
     np.savez(bad, **{k: v.astype(np.float32) if k in floats else v for k, v in arrays.items()})
     single = load_gp(bad)
     assert single.predict(np.zeros((1, 2))).mean.dtype == np.float64
+    parts = (single.main, single.noise) if kind == "hetero" else (single,)
+    assert all(part.theta.dtype == np.float64 for part in parts)  # converted on load
     back = load_gp(path)
     inner = (back.main, back.noise) if kind == "hetero" else (back,)
     kept = (models[kind].main, models[kind].noise) if kind == "hetero" else (models[kind],)
@@ -876,6 +878,25 @@ def test_an_enhanced_gps_variance_includes_the_noise_by_default() -> None:
     assert np.all(with_noise.var > latent.var + 1e-3)
     mean_only = egp.predict(q, return_var=False)  # no variance asked: none computed
     assert mean_only.var is None and np.array_equal(mean_only.mean, with_noise.mean)
+
+
+def test_the_kernel_block_never_exceeds_the_signal_variance() -> None:
+    """The cross-kernel's expanded distance ``|a|^2 - 2 a.b + |b|^2`` loses digits far from the
+    origin and can come out below zero; the block is clamped at ``sf^2`` (both the all-output
+    block and one output's), so ``k(x, x) = sf^2`` exactly at the centres, never above (above
+    it by 1e-12 here without the clamp)."""
+    from estimator_service.gp.kernel import CrossKernel
+
+    rng = np.random.default_rng(0)
+    centres = rng.normal(0.0, 30.0, (200, 4))
+    theta = np.array([[0.3, -0.2, 0.1, 0.5, 0.4, -2.0], [0.0, 0.2, -0.3, 0.1, -0.3, -2.0]])
+    kernel = CrossKernel.build(centres, theta, rng.normal(size=(2, 200)))
+    sf2 = np.exp(2.0 * theta[:, -2])
+    blocks = kernel.block(centres)
+    for p in range(2):
+        for k in (blocks[p], kernel.block_one(centres, p)):
+            assert k.max() <= sf2[p]
+            np.testing.assert_allclose(np.diag(k), sf2[p], rtol=1e-10)
 
 
 def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:

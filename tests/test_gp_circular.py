@@ -199,6 +199,27 @@ def test_circular_files_are_checked_at_each_bound(model, tmp_path: Path, angle_i
         load_gp(tmp_path / "edit.npz")
 
 
+def test_a_circular_files_angle_arrays_missing_or_misshapen_are_named_with_the_file(tmp_path: Path) -> None:
+    """A circular GP file without its angle inputs or angle output, or with an angle output
+    that is not ``(column, period)``, is refused with the file's name first."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-1, 1, (30, 2))
+    gp = fit_circular(x, np.c_[x[:, 0]], lambda a, b: fit_exact(a, b, max_iter=5), angle_inputs=(1,))
+    with np.load(save_gp(gp, tmp_path / "good.npz")) as f:
+        arrays = {k: f[k] for k in f.files}
+    bad = tmp_path / "bad.npz"
+    cases = [({k: v for k, v in arrays.items() if k != key}, f"missing array '{key}'")
+             for key in ("angle_inputs", "angle_output")]  # fmt: skip
+    cases.append(
+        ({**arrays, "angle_output": np.array([-1.0, 1.0, 2.0])}, "angle_output must hold (column, period)")
+    )
+    for content, says in cases:
+        np.savez(bad, **content)
+        with pytest.raises(ModelFileError) as err:
+            load_gp(bad)
+        assert str(err.value).startswith(f"model file {str(bad)!r}: ") and says in str(err.value), err.value
+
+
 def test_an_angle_output_needs_two_inner_outputs(tmp_path: Path) -> None:
     """An angular output is a ``(cos, sin)`` pair: a file whose inner GP has one output and
     declares an angular output is refused."""
