@@ -718,6 +718,60 @@ def test_over_outputs_runs_every_output_once_and_raises_its_errors() -> None:
     assert blas_threads() == before  # the one-thread limit is lifted again
 
 
+def test_over_outputs_keeps_one_pool_grows_it_and_runs_nested_calls_inline() -> None:
+    """With ``w`` BLAS threads allowed the outputs run on ``w`` named pool threads, the same
+    threads serve the next call (one pool, kept), a larger ``w`` replaces the pool with a
+    larger one, ``w = 1`` runs in the calling thread, and a call made on a pool thread runs
+    inline there (it would otherwise wait on the pool it occupies)."""
+    import threading
+
+    from threadpoolctl import threadpool_limits
+
+    from estimator_service.gp.parallel import over_outputs
+
+    def threads(outputs: int, inner: bool = False, meet: bool = True) -> dict[int, threading.Thread]:
+        """Which thread ran each output; with ``meet`` the first ``w`` outputs meet at a
+        barrier, so each of the ``w`` strides is running on its own thread at once."""
+        w, seen, lock = min(blas_threads(), outputs), {}, threading.Lock()
+        barrier = threading.Barrier(w, timeout=20)
+
+        def fn(p: int) -> None:
+            with lock:
+                seen[p] = threading.current_thread()
+            if meet and p < w and w > 1:
+                barrier.wait()
+            if inner:  # a nested call: its outputs must run where it was made
+                nested = threads(2, meet=False)
+                assert set(nested.values()) == {threading.current_thread()}
+
+        over_outputs(fn, outputs)
+        return seen
+
+    from estimator_service.gp.linalg import blas_threads
+
+    def run(target) -> object:
+        """``target()`` on a helper thread that must finish within 30 s (a nested call that
+        waited on its own pool would hang)."""
+        out: list = []
+        helper = threading.Thread(target=lambda: out.append(target()), daemon=True)
+        helper.start()
+        helper.join(30)
+        assert not helper.is_alive() and out, "over_outputs hung"
+        return out[0]
+
+    with threadpool_limits(2):
+        first, again = run(lambda: threads(4)), run(lambda: threads(4))
+        assert len(set(first.values())) == 2 and set(again.values()) == set(first.values())
+        assert all(t.name.startswith("gp-outputs") for t in first.values())
+        run(lambda: threads(4, inner=True))
+    with threadpool_limits(3):
+        grown = run(lambda: threads(6))
+        assert len(set(grown.values())) == 3 and not set(grown.values()) & set(first.values())
+    with threadpool_limits(1):
+        caller = run(lambda: (threading.current_thread(), threads(3)))
+        assert set(caller[1].values()) == {caller[0]}
+
+
 @pytest.mark.parametrize("name", ["exact", "sparse", "hetero"])
 def test_conditioned_keeps_the_hyperparameters_and_follows_the_new_data(models, toy, name: str) -> None:
     """Conditioned on its own training data a fitted GP predicts as before; conditioned on
