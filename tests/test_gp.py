@@ -727,6 +727,7 @@ def test_over_outputs_keeps_one_pool_grows_it_and_runs_nested_calls_inline() -> 
 
     from threadpoolctl import threadpool_limits
 
+    from estimator_service.gp.linalg import blas_threads
     from estimator_service.gp.parallel import over_outputs
 
     def threads(outputs: int, inner: bool = False, meet: bool = True) -> dict[int, threading.Thread]:
@@ -746,8 +747,6 @@ def test_over_outputs_keeps_one_pool_grows_it_and_runs_nested_calls_inline() -> 
 
         over_outputs(fn, outputs)
         return seen
-
-    from estimator_service.gp.linalg import blas_threads
 
     def run(target) -> object:
         """``target()`` on a helper thread that must finish within 30 s (a nested call that
