@@ -952,6 +952,31 @@ def test_the_kernel_block_never_exceeds_the_signal_variance() -> None:
             np.testing.assert_allclose(np.diag(k), sf2[p], rtol=1e-10)
 
 
+def test_the_inverse_factor_judges_the_lower_triangle_it_inverts() -> None:
+    """``inverse_factor`` refuses a factor by the condition of its lower triangle: one with a
+    unit diagonal and a large entry below it (condition about 1e12) is refused under 1e4 and
+    inverted under 1e13; its strictly upper part, zero, is never read."""
+    from estimator_service.gp.linalg import inverse_factor
+
+    l = np.asfortranarray([[1.0, 0.0], [1e6, 1.0]])
+    assert inverse_factor(l, max_cond=1e4) is None
+    np.testing.assert_allclose(inverse_factor(l, max_cond=1e13), [[1.0, 0.0], [-1e6, 1.0]], rtol=1e-12)
+    garbage_above = np.asfortranarray([[1.0, 5.0], [1e6, 1.0]])  # a lower factor ignores it
+    assert inverse_factor(garbage_above, max_cond=1e4) is None
+    np.testing.assert_array_equal(
+        inverse_factor(garbage_above, max_cond=1e13), inverse_factor(l, max_cond=1e13)
+    )
+
+
+def test_a_kernel_with_a_bad_diagonal_is_refused_by_its_diagonal() -> None:
+    """A matrix that fails its factorisation with a diagonal negative on average gets no
+    jitter ladder (a negative jitter would make it worse): it is refused naming its diagonal."""
+    from estimator_service.gp.linalg import NotPositiveDefiniteError, robust_cholesky
+
+    with pytest.raises(NotPositiveDefiniteError, match="non-positive or non-finite diagonal"):
+        robust_cholesky(np.array([[-3.0, 0.0], [0.0, 1.0]]))
+
+
 def test_a_kernel_that_needs_jitter_gets_the_least_that_works() -> None:
     """A kernel with a tiny negative eigenvalue: jitter starts at 1e-10 of the mean
     diagonal and grows tenfold per failure, so the first that works (1e-7) is added and the
