@@ -20,3 +20,18 @@ def npz_declaring(path: Path, name: str, shape: tuple[int, ...], extra: dict | N
             buf = io.BytesIO()
             np.save(buf, v, allow_pickle=True)
             z.writestr(f"{k}.npy", buf.getvalue())
+
+
+def load_refused(path: Path, says: str) -> str:
+    """Load the GP file ``path`` expecting a :class:`ModelFileError` whose message names the
+    file first (``model file '<path>': ``) and contains ``says``; returns the message."""
+    from estimator_service.gp import ModelFileError, load_gp
+
+    try:
+        load_gp(path)
+    except ModelFileError as err:
+        message = str(err)
+    else:
+        raise AssertionError(f"{path} was loaded, expected a ModelFileError saying {says!r}")
+    assert message.startswith(f"model file {str(path)!r}: ") and says in message, message
+    return message
