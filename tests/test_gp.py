@@ -1084,3 +1084,61 @@ def test_the_polish_on_all_points_searches_inside_the_same_bounds(toy, monkeypat
     assert boxes == [box, box]
     lo, hi = np.array(box).T
     assert np.all((lo <= gp.theta) & (gp.theta <= hi))
+
+
+# --- the kernel blocks' vectorised exponential ---
+
+
+def _ulps(got: np.ndarray, want: np.ndarray) -> np.ndarray:
+    """``|got - want|`` in units of ``want``'s last place (0 where both are equal, inf or NaN)."""
+    same = (got == want) | (np.isnan(got) & np.isnan(want))
+    with np.errstate(invalid="ignore"):
+        return np.where(same, 0.0, np.abs(got - want) / np.maximum(np.spacing(np.abs(want)), 5e-324))
+
+
+def test_the_vectorised_exp_is_within_one_ulp_of_numpys_over_the_whole_range() -> None:
+    """``exp_capped`` against NumPy's ``exp(minimum(a, cap))``: random exponents over the whole
+    float64 range, the edges (subnormal results, the overflow threshold, infinities, NaN,
+    -0), one cap per leading row; a strided array and a small block take NumPy's path and
+    equal it exactly."""
+    from estimator_service.gp.fastexp import VECTORISE_MIN, exp_capped, vectorised
+
+    assert vectorised()  # numba is installed with the project's test extras: the compiled loop is tested
+    rng = np.random.default_rng(3)
+    edges = [-np.inf, -800.0, -745.2, -745.1, -740.0, -708.5, -1e-300, -0.0, 0.0, 1e-300, 1.0,
+             709.78, 709.79, 710.0, np.inf, np.nan]  # fmt: skip
+    a = np.concatenate([rng.uniform(-746.0, 709.8, 200_000), rng.uniform(-40, 3, 100_000), edges])
+    with np.errstate(over="ignore"):
+        want = np.exp(a)
+        np.testing.assert_array_equal(_ulps(exp_capped(a.copy()), want) <= 1.0, True)
+        rows = rng.uniform(-60, 8, (3, 80, 100))
+        caps = np.array([-1.0, 0.5, 2.0])
+        got = exp_capped(rows.copy(), caps)
+        assert _ulps(got, np.exp(np.minimum(rows, caps[:, None, None]))).max() <= 1.0
+        assert got[0].max() <= math.exp(-1.0) and got[2].max() > math.exp(0.5)
+        fortran = np.asfortranarray(rows)
+        assert not fortran.flags.c_contiguous
+        np.testing.assert_array_equal(exp_capped(fortran.copy(order="F"), 0.5), np.exp(np.minimum(rows, 0.5)))
+        small = rng.uniform(-60, 8, VECTORISE_MIN - 1)
+        np.testing.assert_array_equal(exp_capped(small.copy(), 1.0), np.exp(np.minimum(small, 1.0)))
+
+
+def test_without_numba_the_exp_is_numpys() -> None:
+    """Where numba is missing (the estimator alone) ``exp_capped`` is NumPy's ``minimum`` and
+    ``exp``, exactly."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['numba'] = None\n"
+        "import numpy as np\n"
+        "from estimator_service.gp.fastexp import exp_capped, vectorised\n"
+        "a = np.random.default_rng(0).uniform(-50, 5, (2, 30000))\n"
+        "got = exp_capped(a.copy(), np.array([0.0, 1.0]))\n"
+        "want = np.exp(np.minimum(a, np.array([[0.0], [1.0]])))\n"
+        "print(vectorised(), np.array_equal(got, want))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert out.stdout.split() == ["False", "True"]

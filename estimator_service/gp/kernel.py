@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from estimator_service.gp.fastexp import exp_capped
+
 __all__ = ["se_kernel", "split_theta", "sq_dist"]
 
 FloatArray = NDArray[np.float64]
@@ -49,7 +51,7 @@ def se_kernel(a: FloatArray, b: FloatArray, ell: FloatArray, sf2: FloatArray | f
     ell = np.asarray(ell)
     k = sq_dist(a / ell[..., None, :], b / ell[..., None, :])
     k *= -0.5
-    np.exp(k, out=k)
+    exp_capped(k)
     k *= np.asarray(sf2)[..., None, None]
     return k
 
@@ -95,17 +97,13 @@ class CrossKernel:
         a = xs[None] / self.ell[:, None, :]
         ones = np.ones((*a.shape[:2], 1))
         a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=-1)[..., None], ones], axis=-1)
-        ks = a_aug @ self.b_aug_t
-        np.minimum(ks, self.log_sf2[:, None, None], out=ks)  # distance >= 0
-        return np.exp(ks, out=ks)
+        return exp_capped(a_aug @ self.b_aug_t, self.log_sf2)  # capped: distance >= 0
 
     def block_one(self, xs: FloatArray, p: int) -> FloatArray:
         """Output ``p``'s kernel block ``(M, n)`` at standardised queries ``xs (M, d)``."""
         a = xs / self.ell[p]
         a_aug = np.concatenate([a, -0.5 * np.sum(a * a, axis=1)[:, None], np.ones((a.shape[0], 1))], axis=1)
-        k = a_aug @ self.b_aug_t[p]
-        np.minimum(k, self.log_sf2[p], out=k)
-        return np.exp(k, out=k)
+        return exp_capped(a_aug @ self.b_aug_t[p], float(self.log_sf2[p]))  # distance >= 0
 
     def jacobian(self, ks: FloatArray, xs: FloatArray, mean: FloatArray) -> FloatArray:
         """``d mean / d x* (M, P, d)`` (eq. 20-22) from the block ``ks (P, M, n)``, the
