@@ -5,8 +5,8 @@ the scalar libm routine, 5-9 ns per element, a large part of a batched GP predic
 (docs/measurements.md#vectorised-exp). :mod:`estimator_service.gp.fastexp_kernel` computes
 it with arithmetic the compiler vectorises: ``exp(x) = 2^k exp(r)``, ``k = round(x / ln
 2)``, ``r = x - k ln 2`` with ``ln 2`` in two parts (Cody and Waite), so ``|r| <= ln(2) /
-2``; ``exp(r)`` by its Taylor polynomial of degree 13 (truncation error below ``2e-18``, a
-hundredth of an ulp), Horner's rule with fused multiply-adds; ``2^k`` from its exponent
+2``; ``exp(r)`` by its Taylor polynomial of degree 13 (truncation error at most ``|r|^14 /
+14! < 5e-18``, a fortieth of an ulp), Horner's rule with fused multiply-adds; ``2^k`` from its exponent
 bits in two factors ``2^(k // 2)`` and ``2^(k - k // 2)``, so that neither leaves the
 float64 range for ``k`` from -1075 to 1024 and the product rounds once into the subnormals
 or to infinity as ``exp`` does. The rounding to an integer adds and subtracts ``1.5 *
