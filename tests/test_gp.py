@@ -1121,6 +1121,9 @@ def test_the_vectorised_exp_is_within_one_ulp_of_numpys_over_the_whole_range() -
         np.testing.assert_array_equal(exp_capped(fortran.copy(order="F"), 0.5), np.exp(np.minimum(rows, 0.5)))
         small = rng.uniform(-60, 8, VECTORISE_MIN - 1)
         np.testing.assert_array_equal(exp_capped(small.copy(), 1.0), np.exp(np.minimum(small, 1.0)))
+    for bad in (np.zeros(2), np.zeros((3, 1))):  # a cap per leading index, or one: nothing else
+        with pytest.raises(ValueError, match="cap must be"):
+            exp_capped(rows.copy(), bad)
 
 
 def test_without_numba_the_exp_is_numpys() -> None:

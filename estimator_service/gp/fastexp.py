@@ -74,7 +74,11 @@ def exp_capped(a: FloatArray, cap: float | FloatArray = np.inf) -> FloatArray:
         One cap, or one per leading index of ``a`` (e.g. per GP output).
     """
     caps = np.asarray(cap, dtype=np.float64)
-    fast = a.size >= VECTORISE_MIN and a.ndim > 0 and caps.ndim <= 1
+    if caps.ndim > 1 or (caps.ndim == 1 and (a.ndim == 0 or caps.size != a.shape[0])):
+        raise ValueError(
+            f"cap must be a scalar or one per leading index of a {a.shape}, got shape {caps.shape}"
+        )
+    fast = a.size >= VECTORISE_MIN and a.ndim > 0
     loop = _compiled() if fast and a.dtype == np.float64 and a.flags.c_contiguous else None
     if loop is None:
         np.minimum(a, caps if caps.ndim == 0 else caps.reshape(-1, *(1,) * (a.ndim - 1)), out=a)
