@@ -2,17 +2,9 @@
 
 NumPy's float64 ``exp`` is vectorised only on CPUs with AVX-512; elsewhere (AVX2) it calls
 the scalar libm routine, 5-9 ns per element, a large part of a batched GP prediction
-(docs/measurements.md#vectorised-exp). :mod:`estimator_service.gp.fastexp_kernel` computes
-it with arithmetic the compiler vectorises: ``exp(x) = 2^k exp(r)``, ``k = round(x / ln
-2)``, ``r = x - k ln 2`` with ``ln 2`` in two parts (Cody and Waite), so ``|r| <= ln(2) /
-2``; ``exp(r)`` by its Taylor polynomial of degree 13 (truncation error at most ``|r|^14 /
-14! < 5e-18``, a fortieth of an ulp), Horner's rule with fused multiply-adds; ``2^k`` from its exponent
-bits in two factors ``2^(k // 2)`` and ``2^(k - k // 2)``, so that neither leaves the
-float64 range for ``k`` from -1075 to 1024 and the product rounds once into the subnormals
-or to infinity as ``exp`` does. The rounding to an integer adds and subtracts ``1.5 *
-2^52``; the conversions are to 32-bit integers, which AVX2 has (it lacks the 64-bit ones).
-Measured over the whole float64 range: within 1 ulp of NumPy's ``exp``; NaN stays NaN,
-``-inf`` gives 0, ``inf`` gives inf.
+(docs/measurements.md#vectorised-exp). :mod:`estimator_service.gp.fastexp_kernel` holds a
+compiled loop the compiler vectorises (how, and how accurate: its docstring); this module
+decides which blocks it gets.
 
 numba compiles that loop once per machine (about 2 s, cached beside the module or in
 numba's user cache where that folder is read-only); a process loads it (about 0.7 s with
@@ -78,7 +70,7 @@ def exp_capped(a: FloatArray, cap: float | FloatArray = np.inf) -> FloatArray:
         raise ValueError(
             f"cap must be a scalar or one per leading index of a {a.shape}, got shape {caps.shape}"
         )
-    fast = a.size >= VECTORISE_MIN and a.ndim > 0
+    fast = a.size >= VECTORISE_MIN  # a 0-d array is one element: NumPy's
     loop = _compiled() if fast and a.dtype == np.float64 and a.flags.c_contiguous else None
     if loop is None:
         np.minimum(a, caps if caps.ndim == 0 else caps.reshape(-1, *(1,) * (a.ndim - 1)), out=a)

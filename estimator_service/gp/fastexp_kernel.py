@@ -1,5 +1,16 @@
 """The compiled loop of :mod:`estimator_service.gp.fastexp` (numba; imported on first use).
 
+``exp(x) = 2^k exp(r)``, ``k = round(x / ln 2)``, ``r = x - k ln 2`` with ``ln 2`` in two
+parts (Cody and Waite), so ``|r| <= ln(2) / 2``; ``exp(r)`` by its Taylor polynomial of
+degree 13 (truncation error at most ``|r|^14 / 14! < 5e-18``, a fortieth of an ulp),
+Horner's rule with fused multiply-adds; ``2^k`` from its exponent bits in two factors
+``2^(k // 2)`` and ``2^(k - k // 2)``, so that neither leaves the float64 range for ``k``
+from -1075 to 1024 and the product rounds once into the subnormals or to infinity as
+``exp`` does. The rounding to an integer adds and subtracts ``1.5 * 2^52``; the
+conversions are to 32-bit integers, which AVX2 has (it lacks the 64-bit ones), so the loop
+vectorises there. Measured over the whole float64 range: within 1 ulp of NumPy's ``exp``;
+NaN stays NaN, ``-inf`` gives 0, ``inf`` gives inf.
+
 Kept apart so that a process that never exponentiates a large block does not import numba
 (about 0.5 s) nor load the compiled code (about 0.2 s from numba's cache).
 """
