@@ -566,7 +566,7 @@ def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.Ca
     from agents.cli import main as gpbf_main
 
     root = Path(__file__).resolve().parents[1]
-    report = (root / "docs" / "results" / "sac_hover_state" / "report.md").read_text()
+    report = (root / "docs" / "results" / "sac_hover" / "report.md").read_text()
     cmd = next(ln for ln in report.splitlines() if ln.startswith("| hover-state-1 |")).split("`")[1].split()
     assert cmd[:2] == ["gpbf", "eval-agent"] and cmd[3:] == ["--episodes", "100", "--seed", "5000"]
     model = root / cmd[2]
