@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -232,11 +233,17 @@ def build_parser(prog: str = "python -m estimator_service") -> Parser:
 
 def run(args: argparse.Namespace, prog: str) -> int:
     """Run a parsed command; a user's mistake (bad file, bad value) is one line, exit code 2."""
+    return guarded(f"{prog} {args.command}", args, lambda: args.func(args))
+
+
+def guarded(prog: str, args: argparse.Namespace, work: Callable[[], int]) -> int:
+    """Check ``args``' output paths, then run ``work``; a user's mistake (``USER_ERRORS``)
+    is one line naming ``prog``, and exit code 2."""
     try:
         _check_outputs(args)
-        return int(args.func(args))
+        return int(work())
     except USER_ERRORS as exc:
-        print(f"{prog} {args.command}: error: {_said(exc)}", file=sys.stderr)
+        print(f"{prog}: error: {_said(exc)}", file=sys.stderr)
         return 2
 
 

@@ -58,12 +58,14 @@ class Parser(argparse.ArgumentParser):
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Keeps the description's line breaks and appends ``(default: X)`` to an option's help
     once: not where the help already names its default, not for a required option, a flag
-    or an option whose default is nothing (None, an empty string)."""
+    or an option whose default is nothing (None, an empty string or list, False). A default
+    of 0 is shown (``0 == False``: the test is by identity)."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
-        text = action.help or ""
-        quiet = (action.required or action.default in (None, "", False, argparse.SUPPRESS)
-                 or "default" in text or action.nargs == 0 or not action.option_strings)  # fmt: skip
+        text, default = action.help or "", action.default
+        nothing = default is None or default is False or default is argparse.SUPPRESS or default in ("", [])
+        quiet = (action.required or nothing or "default" in text or action.nargs == 0
+                 or not action.option_strings)  # fmt: skip
         return text if quiet else f"{text} (default: %(default)s)"
 
 

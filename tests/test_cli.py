@@ -62,6 +62,23 @@ def test_file_mistakes_are_one_line_with_exit_code_2(capsys, tmp_path: Path) -> 
     _fails(capsys, ["serve", "--models", str(tmp_path / "none")], needle="does not exist")
 
 
+def test_the_experiment_scripts_refuse_mistakes_in_one_line_and_write_nothing(capsys, tmp_path: Path) -> None:
+    """``python -m agents.experiments.rl --report-only`` and ``python -m
+    agents.experiments.report`` on a folder with nothing to report, under a file, or (the
+    report) without arguments: one line, exit code 2, no folder or file written."""
+    from agents.experiments.report import main as report
+    from agents.experiments.rl import main as rl
+
+    (tmp_path / "afile").write_text("x")
+    _fails(capsys, ["--report-only", "--out", str(tmp_path / "empty")], main=rl, needle="no trained agent")
+    _fails(
+        capsys, ["--report-only", "--out", str(tmp_path / "afile" / "x")], main=rl, needle="not a directory"
+    )
+    _fails(capsys, [], main=report, needle="folders")
+    _fails(capsys, [str(tmp_path / "empty")], main=report, needle="no results.json")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
 def test_help_shows_the_same_defaults_everywhere(capsys) -> None:
     helps = {}
     for cmd in (["track"], ["serve"], ["train-agent"]):
@@ -87,7 +104,9 @@ def test_help_names_each_default_once_and_no_empty_default(capsys) -> None:
     for name, sub in commands.items():
         text = sub.format_help()
         assert "(default: None)" not in text and "(default: False)" not in text, name
-        assert "(default: )" not in text, name
+        assert "(default: )" not in text and "(default: [])" not in text, name
+        seed = next((b for b in re.split(r"\n  (?=-)", text) if b.startswith("--seed ")), None)
+        assert seed is None or re.search(r"\(default: \d+\)", seed), (name, seed)  # 0 is a default too
         for block in re.split(r"\n  (?=-)", text):  # one option's help per block
             assert len(re.findall(r"\bdefault\b", block)) <= 1, (name, block)
 

@@ -223,3 +223,41 @@ def test_fig5_compares_the_heteroscedastic_and_regular_uncertainty_while_the_tai
     assert verdicts(figures(2.0, 0.3, gp_on=2.5)) == {keys[0]: False, keys[1]: True, keys[2]: False}
     assert _fig5_checks({}) == []
     assert set(keys) <= {k for k, _, _ in claims({"tracking": {}, "table5_6": {}, "fig5": figures(1.5, 0.3)})}
+
+
+def test_every_committed_result_file_is_standard_json() -> None:
+    """Every JSON file under ``docs/results`` parses as standard JSON: no bare ``NaN`` or
+    ``Infinity`` (a figure not measured is ``null``), which JSON parsers other than
+    Python's refuse."""
+    import json
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    listed = subprocess.run(["git", "ls-files", "docs/results"], cwd=root, capture_output=True, text=True)
+    files = [root / f for f in listed.stdout.split() if f.endswith(".json")] or list(
+        (root / "docs" / "results").rglob("*.json")
+    )  # a copy without git: every file there
+    assert len(files) > 20
+    bare = []
+    for f in files:
+        json.loads(f.read_text(), parse_constant=lambda c, f=f: bare.append(f"{f.relative_to(root)}: {c}"))
+    assert not bare, bare
+
+
+def test_a_command_run_as_python_m_is_recorded_as_one_that_runs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m agents.experiments.rl ...`` is recorded so, not as its file's name
+    (``rl.py ...`` cannot be run); a script's own ``-m`` argument is not taken for the
+    interpreter's, and no machine's path is recorded."""
+    import sys
+
+    from agents.experiments.provenance import named_argv
+
+    monkeypatch.setattr(
+        sys, "orig_argv", ["/usr/bin/python3", "-X", "dev", "-m", "agents.experiments.rl", "--out", "x"]
+    )
+    monkeypatch.setattr(sys, "argv", ["/work/agents/experiments/rl.py", "--out", "x"])
+    assert named_argv() == ["python", "-m", "agents.experiments.rl", "--out", "x"]
+    monkeypatch.setattr(sys, "orig_argv", ["/usr/bin/python3", "/work/tool.py", "-m", "y"])
+    monkeypatch.setattr(sys, "argv", ["/work/tool.py", "-m", "y"])
+    assert named_argv() == ["tool.py", "-m", "y"]
+    assert named_argv(["/opt/bin/gpbf", "reproduce"]) == ["gpbf", "reproduce"]

@@ -433,6 +433,29 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     assert (tmp_path / "learning_curves.png").exists() and (tmp_path / "returns.png").exists()
 
 
+def test_a_resumed_rl_run_counts_the_agents_it_finds_trained_as_a_sliver_of_the_work(tmp_path: Path) -> None:
+    """A run resumed with 3 of its 9 agents trained reads them back in seconds; its progress
+    must not say a third of the work is done (it said 33 % with an ETA of 10 s on a run with
+    about 90 minutes left), and the agents left weigh by variant."""
+    import io
+
+    from agents.experiments.rl import FILTER_VARIANT_COST, RLSettings, agent_weights
+    from estimator_service.progress import ProgressBar
+
+    todo = [("hover", v, s) for v in ("state", "belief", "ellipses") for s in range(3)]
+    for s in range(3):
+        (tmp_path / "agents" / f"hover-state-{s}").mkdir(parents=True)
+        (tmp_path / "agents" / f"hover-state-{s}" / "result.json").write_text("{}")
+    weights = agent_weights(tmp_path, todo, RLSettings())
+    assert weights[3:] == [FILTER_VARIANT_COST] * 3 + [1.0] * 3
+    stream = io.StringIO()
+    bar = ProgressBar("train agents", unit="agent", weights=weights, stream=stream)
+    for i in range(3):
+        bar.advance(index=i)
+    bar.close()
+    assert "3/9 agents (0%)" in stream.getvalue().splitlines()[-1]
+
+
 def test_tensorboard_flag_logs_or_names_the_missing_package(models: str, tmp_path: Path) -> None:
     import importlib.util
 

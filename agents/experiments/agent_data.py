@@ -9,7 +9,6 @@ parametric EKF), writing ``agent_data.json`` and its table.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +19,7 @@ from agents.rl.registry import TASK_ENVS
 from agents.rl.training import agent_folder
 from agents.sim import collect_flight
 from estimator_service.factory import build_filter
-from estimator_service.files import atomic_write_text
+from estimator_service.files import atomic_write_text, json_text
 from estimator_service.flight import Flight
 from estimator_service.tracking import GROUPS, score, track_flight
 from estimator_service.training import TrainSettings, train_models
@@ -74,7 +73,7 @@ def agent_data_loop(
         "heldout_episodes": len(_episodes(heldout)),
         "tracking": table,
     }
-    atomic_write_text(out / "agent_data.json", json.dumps(data, indent=2))
+    atomic_write_text(out / "agent_data.json", json_text(data, indent=2))
     return data
 
 

@@ -154,6 +154,11 @@ def _successful_mll(res: Sequence[dict], f: str) -> list[float]:
     return [mean, float(np.sqrt(np.average((v - mean) ** 2, weights=w)))]
 
 
+def _number(v: float | None) -> float:
+    """A figure read back from ``results.json`` (null: not measured, e.g. no successful run)."""
+    return math.nan if v is None else float(v)
+
+
 def plot_data_sparsity(res: dict, path: Path) -> Path:
     """The paper's Fig. 3: the percentage of failed runs, and the mean log-likelihood of the
     successful runs, against the number of training points or pseudo-inputs."""
@@ -171,13 +176,13 @@ def plot_data_sparsity(res: dict, path: Path) -> Path:
         for f in FILTERS:
             row = [res[curve][s][f] for s in sizes]
             failed = [100 * v["failed"][0] for v in row]
-            mll = [v.get("mll_successful", v["mll"])[0] for v in row]  # older results: all runs
+            mll = [_number(v.get("mll_successful", v["mll"])[0]) for v in row]  # older results: all runs
             for ax, ys in zip(axes, (failed, mll), strict=True):
                 ax.plot(xs, ys, style, color=colours[f], marker="o", label=f"GP-{f.upper()}, {label}")
     axes[0].set(xlabel="training points / pseudo-inputs", ylabel="failed runs (%)", xscale="log")
     axes[1].set(xlabel="training points / pseudo-inputs", ylabel="mean log-likelihood, successful runs",
                 xscale="log")  # fmt: skip
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8, handlelength=4)  # long enough to tell dashed from solid
     fig.tight_layout()
     return save_figure(fig, path)
 
@@ -193,7 +198,7 @@ def describe(res: dict) -> list[str]:
     for curve in ("points", "pseudo"):
         for size in sorted(res[curve], key=int):
             for f, v in res[curve][size].items():
-                mll, ok = v["mll"][0], v.get("mll_successful", [math.nan])[0]  # older results: none
+                mll, ok = _number(v["mll"][0]), _number(v.get("mll_successful", [math.nan])[0])  # older: none
                 lines.append(
                     f"| {'random subset' if curve == 'points' else 'sparse'} | {size} | GP-{f.upper()} | "
                     f"{v['outside_3sigma'][0]:.2f} | {v['failed'][0]:.2f} | "

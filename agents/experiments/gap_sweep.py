@@ -10,7 +10,6 @@ of the GP and EGP models with the EKF and the UKF. Writes ``gap_sweep.json``, a 
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
@@ -21,7 +20,7 @@ from agents.experiments.parallel import check_jobs, run_all
 from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
-from estimator_service.files import atomic_write_text
+from estimator_service.files import atomic_write_text, json_text
 from estimator_service.flight import Flight
 from estimator_service.progress import ProgressBar
 from estimator_service.tracking import mean_sd
@@ -78,7 +77,7 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
             if k != "param"
         }
     result = {"settings": asdict(s), "strengths": list(strengths), "improvement_pct": table}
-    atomic_write_text(out / "gap_sweep.json", json.dumps(result, indent=2))
+    atomic_write_text(out / "gap_sweep.json", json_text(result, indent=2))
     atomic_write_text(out / "gap_sweep.md", "\n".join(describe(result)) + "\n")
     _plot(result, out / "gap_sweep.png")
     return result

@@ -27,7 +27,13 @@ def code_version() -> str:
 
 
 def named_argv(argv: list[str] | None = None) -> list[str]:
-    """``argv`` (default: this process's) with its program by name only: no machine's paths."""
+    """``argv`` (default: this process's) with its program by name only: no machine's paths;
+    this process's command run as ``python -m module`` is recorded so (its file's name alone,
+    e.g. ``rl.py``, cannot be run)."""
+    if argv is None:
+        orig = list(getattr(sys, "orig_argv", []))
+        if "-m" in orig[:-1] and orig[orig.index("-m") + 2 :] == sys.argv[1:]:
+            return ["python", "-m", orig[orig.index("-m") + 1], *sys.argv[1:]]
     argv = list(sys.argv if argv is None else argv) or [""]
     return [Path(argv[0]).name, *argv[1:]]
 

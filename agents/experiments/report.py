@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -537,11 +536,11 @@ def _took(res: dict) -> str:
 def rewrite(out: Path) -> Path:
     """Recompute ``out/results.json``'s ``claims`` and ``beyond`` from its figures by today's
     rules and write ``out/report.md`` again (hand-written notes kept)."""
-    from estimator_service.files import atomic_write_text
+    from estimator_service.files import atomic_write_text, json_text
 
     res = json.loads((out / "results.json").read_text())
     res.update(verdicts(res))
-    atomic_write_text(out / "results.json", json.dumps(res, indent=2))
+    atomic_write_text(out / "results.json", json_text(res, indent=2))
     return write_report(out, res)
 
 
@@ -630,6 +629,30 @@ def write_report(out: Path, res: dict) -> Path:
     return path
 
 
-if __name__ == "__main__":  # python -m agents.experiments.report DIR...: rewrite committed reports
-    for folder in sys.argv[1:]:
-        print(f"wrote {rewrite(Path(folder))}")
+def main(argv: list[str] | None = None) -> int:
+    """``python -m agents.experiments.report DIR...``: each folder's verdicts and report
+    rewritten from its ``results.json`` (every folder checked before any is written)."""
+    from estimator_service.cli import guarded
+    from estimator_service.cli_args import Parser
+
+    p = Parser(
+        prog="python -m agents.experiments.report",
+        description="Recompute the verdicts (claims, beyond) of gpbf reproduce reports from their "
+        "results.json and write each report.md again; notes written by hand below the marker line are kept.",
+    )
+    p.add_argument("folders", nargs="+", type=Path, help="report folders, each with a results.json")
+    a = p.parse_args(argv)
+
+    def work() -> int:
+        for folder in a.folders:
+            if not (folder / "results.json").is_file():
+                raise FileNotFoundError(2, "no results.json here (gpbf reproduce writes one)", str(folder))
+        for folder in a.folders:
+            print(f"wrote {rewrite(folder)}")
+        return 0
+
+    return guarded(p.prog, a, work)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

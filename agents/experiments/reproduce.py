@@ -10,7 +10,6 @@ cross-validation over contiguous blocks of one long scripted flight.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from contextlib import nullcontext
@@ -28,7 +27,7 @@ from agents.experiments.report import FIG3_FILE, FIG4_FILE, FIG5_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.factory import MODEL_KINDS, build_filter, load_models
-from estimator_service.files import atomic_write_text
+from estimator_service.files import atomic_write_text, json_text
 from estimator_service.flight import Flight
 from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.models.base import PredictionModel
@@ -333,7 +332,7 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     from agents.experiments.report import verdicts, write_report
 
     results.update(verdicts(results))
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(out / "results.json", json_text(results, indent=2))
 
     write_report(out, results)
     return results

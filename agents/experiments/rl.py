@@ -1,4 +1,4 @@
-""" "What filtering is worth": RL agents on the four observation variants, hover and waypoint.
+"""What filtering is worth: RL agents on the four observation variants, hover and waypoint.
 
 ``python -m agents.experiments.rl --out docs/results/rl`` trains one agent per (task,
 variant, seed) with the committed hyperparameters (``hyperparams/<algo>.yml``, in the
@@ -12,6 +12,7 @@ share of the ellipse-to-state gap the GP-belief agent closes; each target's verd
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import multiprocessing
@@ -28,15 +29,21 @@ from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
 from agents.sim import collect_flight
+from estimator_service.cli import guarded
 from estimator_service.cli_args import Parser, checked_int
 from estimator_service.files import atomic_write_text, json_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["RLSettings", "gap_closed", "main", "report_existing", "run", "summarise"]
+__all__ = ["RLSettings", "agent_weights", "gap_closed", "main", "report_existing", "run", "summarise"]
 
 EVAL_SEED = 5000  # the held-out episodes every agent and the pilot fly
 CURVE_POINTS = 10  # evaluations during training
+# Progress weights (docs/measurements.md#progress-weights): an agent's training cost over a
+# true-state agent's of the same budget (the filter variants step a filter too), and an agent
+# a resumed run finds trained (its result.json read back), as a share of a training's cost.
+FILTER_VARIANT_COST = 1.0
+KEPT_AGENT_COST = 1e-4
 
 
 @dataclass(frozen=True)
@@ -62,7 +69,7 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
     from threadpoolctl import threadpool_limits
 
     torch.set_num_threads(1)
-    folder = out / "agents" / f"{task}-{variant}-{seed}"
+    folder = _agent_folder(out, task, variant, seed)
     done = folder / "result.json"
     if done.exists():
         return json.loads(done.read_text())
@@ -94,6 +101,29 @@ def _models(out: Path, cfg: RLSettings) -> Path:
     return models
 
 
+def _agent_folder(out: Path, task: str, variant: str, seed: int) -> Path:
+    return out / "agents" / f"{task}-{variant}-{seed}"
+
+
+def agent_weights(out: Path, todo: list[tuple[str, str, int]], cfg: RLSettings) -> list[float]:
+    """Each agent's estimated cost for the progress line, in true-state agents of this
+    run's budget: ``KEPT_AGENT_COST`` for one already trained under ``out`` (resume),
+    ``FILTER_VARIANT_COST`` for the belief variants, 1 for the others.
+
+    Returns
+    -------
+    weights: (len(todo),)
+    """
+    return [
+        KEPT_AGENT_COST
+        if (_agent_folder(out, t, v, s) / "result.json").exists()
+        else FILTER_VARIANT_COST
+        if v.startswith("belief")
+        else 1.0
+        for t, v, s in todo
+    ]
+
+
 def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     """Train every (task, variant, seed) agent, ``cfg.jobs`` at a time, evaluate them and the
     pilot, and write ``results.json`` and the report (agents already holding
@@ -104,14 +134,15 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     models = _models(out, cfg)
     todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
+    weights = agent_weights(out, todo, cfg)
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=max(1, cfg.jobs), mp_context=ctx) as pool:
-        futures = [pool.submit(_job, t, v, s, models, out, cfg) for t, v, s in todo]
-        with ProgressBar("train agents", len(futures), unit="agent") as bar:
-            for _ in as_completed(futures):
-                bar.advance()
+        futures = {pool.submit(_job, t, v, s, models, out, cfg): i for i, (t, v, s) in enumerate(todo)}
+        with ProgressBar("train agents", unit="agent", weights=weights) as bar:
+            for fut in as_completed(futures):
+                bar.advance(index=futures[fut])
     runs: dict[str, dict[str, list[dict]]] = {}
-    for (task, variant, _), fut in zip(todo, futures, strict=True):
+    for (task, variant, _), fut in zip(todo, futures, strict=True):  # dicts keep submission order
         runs.setdefault(task, {}).setdefault(variant, []).append(fut.result())
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in cfg.tasks}
     data = {**summarise(runs, pilot, cfg), "provenance": provenance(time.monotonic() - start, code=code)}
@@ -130,11 +161,13 @@ def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
     for task in cfg.tasks:
         for variant in cfg.variants:
             for seed in range(cfg.seeds):
-                done = out / "agents" / f"{task}-{variant}-{seed}" / "result.json"
+                done = _agent_folder(out, task, variant, seed) / "result.json"
                 if done.exists():
                     runs.setdefault(task, {}).setdefault(variant, []).append(json.loads(done.read_text()))
                 else:
                     missing.append(f"{task}-{variant}-{seed}")
+    if not runs:
+        raise ValueError(f"--out {out}: no trained agent to report (no agents/*/result.json)")
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in runs}
     data = summarise(runs, pilot, cfg)
     data["meta"]["not_trained"] = missing
@@ -193,7 +226,7 @@ def summarise(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = Parser(description=__doc__)
+    p = Parser(prog="python -m agents.experiments.rl", description=__doc__.strip())
     p.add_argument(
         "--out", type=Path, default=Path("out/rl"),
         help="output folder (the committed results: docs/results/rl, docs/results/rl_sac)",
@@ -236,6 +269,10 @@ def main(argv: list[str] | None = None) -> int:
         a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),
         a.points, a.model, a.jobs, a.tensorboard,
     )  # fmt: skip
+    return guarded(p.prog, a, lambda: _main(a, cfg))
+
+
+def _main(a: argparse.Namespace, cfg: RLSettings) -> int:
     if a.report_only:
         report_existing(a.out, cfg)
     else:
