@@ -72,8 +72,9 @@ def swap_figures(folders: list[Path], tests: list, filt: str, seg: int) -> dict[
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="tiny models on a 90-second flight")
-    ap.add_argument("--results", type=Path, default=ROOT / "docs/results/reproduce_full",
-                    help="a gpbf reproduce output folder with its models_fold*/")  # fmt: skip
+    ap.add_argument("--results", type=Path, default=Path("out/reproduce"),
+                    help="a gpbf reproduce output folder with its models_fold*/ "
+                         "(default: gpbf reproduce's own, out/reproduce)")  # fmt: skip
     ap.add_argument("--filter", default="ukf", choices=("ukf", "ekf"), help="filter to track with")
     args = ap.parse_args()
     if args.quick:
@@ -84,7 +85,8 @@ def main() -> None:
             figures = swap_figures([Path(tmp)], [test], args.filter, 80)
     else:
         if not (args.results / "results.json").exists():
-            sys.exit(f"{args.results} has no results.json: give a gpbf reproduce output folder")
+            sys.exit(f"--results {args.results} has no results.json: run 'gpbf reproduce' first "
+                     "(it writes out/reproduce) or give another of its output folders")  # fmt: skip
         s = json.loads((args.results / "results.json").read_text())["settings"]
         folders = [args.results / f"models_fold{i}" for i in range(s["folds"])]
         if missing := [f for f in folders if not (f / "parametric.npz").exists()]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
@@ -54,12 +55,31 @@ class Parser(argparse.ArgumentParser):
         print(f"{self.prog}: error: {message} (see '{self.prog} --help')", file=sys.stderr)
         raise SystemExit(2)
 
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        """As argparse's, but an option the chosen subcommand does not know is that
+        subcommand's error (``gpbf track: error: ...``, see ``gpbf track --help``)."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            subs = [a for a in self._actions if isinstance(a, argparse._SubParsersAction)]
+            chosen = subs[0].choices.get(getattr(ns, subs[0].dest, None)) if subs else None
+            (chosen or self).error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns
+
+
+_ROLE = re.compile(r":[a-z]+:`(?P<short>~?)(?P<name>[^`]+)`")  # :func:`~pkg.mod.f`
+
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
     """Keeps the description's line breaks and appends ``(default: X)`` to an option's help
     once: not where the help already names its default, not for a required option, a flag
     or an option whose default is nothing (None, an empty string or list, False). A default
     of 0 is shown (``0 == False``: the test is by identity)."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        """The description as plain text: a module docstring's reST roles and literals
+        (``:func:`~a.b.f```, double backquotes) read as ``f`` and the bare words."""
+        text = _ROLE.sub(lambda m: m["name"].rsplit(".", 1)[-1] if m["short"] else m["name"], text)
+        return super()._fill_text(text.replace("``", ""), width, indent)
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text, default = action.help or "", action.default

@@ -30,6 +30,7 @@ __all__ = [
     "current_umask",
     "json_text",
     "npz_oversized",
+    "npz_unreadable",
     "remove_stale_temps",
 ]
 
@@ -126,6 +127,15 @@ def _finite_or_null(obj: object) -> object:
 
 
 MAX_ARRAY_BYTES = 2**31  # a larger array in a data or model file is refused before it is read
+
+
+def npz_unreadable(exc: Exception) -> str:
+    """Why ``np.load(path, allow_pickle=False)`` raised ``exc``, in a user's terms: a file that
+    is neither a zip archive nor a ``.npy`` array makes NumPy suggest an unsafe pickle load,
+    which would be wrong advice for a file that is simply not ``.npz``."""
+    if isinstance(exc, ValueError) and "file contains pickled" in str(exc):  # NumPy 1.x-2.x wording
+        return "not a NumPy .npz file (neither a zip archive nor a .npy array)"
+    return f"unreadable or truncated ({exc})"
 
 
 def npz_oversized(npz: np.lib.npyio.NpzFile) -> str | None:

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.files import atomic_savez, npz_oversized
+from estimator_service.files import atomic_savez, npz_oversized, npz_unreadable
 from estimator_service.system import DescriptionError, System
 
 __all__ = [
@@ -280,7 +280,9 @@ def load_flight(path: str | os.PathLike[str]) -> Flight:
     except FileNotFoundError:
         raise
     except Exception as exc:
-        raise FlightError(f"{where}: unreadable or truncated ({exc})") from exc
+        why = npz_unreadable(exc)
+        hint = "; a CSV log needs a .csv name and a --system description" if why.startswith("not a") else ""
+        raise FlightError(f"{where}: {why}{hint}") from exc
     if oversized:
         raise FlightError(f"{where}: {oversized} (a damaged or hostile file)")
     if "metadata" not in data:

@@ -45,6 +45,7 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["serve", "--models", "m", "--workers", "0"], "--workers"),
         (["serve"], "--models"),
         (["frobnicate"], "invalid choice"),
+        (["track", "f.npz", "--out", "x"], "gpbf track: error: unrecognized arguments: --out x"),
     ],
 )
 def test_option_mistakes_are_one_line_with_exit_code_2(capsys, argv: list[str], needle: str) -> None:
@@ -58,6 +59,11 @@ def test_file_mistakes_are_one_line_with_exit_code_2(capsys, tmp_path: Path) -> 
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     _fails(capsys, ["track", str(tmp_path / "bad.npz"), "--models", str(tmp_path)], needle="bad.npz")
     _fails(capsys, ["eval-agent", str(tmp_path / "nowhere" / "model.zip")], needle="agent.json")
+    (tmp_path / "notes.txt").write_text("a text file")
+    _fails(capsys, ["eval-agent", str(tmp_path / "notes.txt")], needle="a file, not an agent's folder")
+    notes = str(tmp_path / "notes.txt")
+    err = _fails(capsys, ["track", notes, "--models", str(tmp_path)], needle="notes.txt")
+    assert "not a NumPy .npz file" in err and "pickle" not in err, err  # NumPy's advice: an unsafe load
     _fails(capsys, ["train", str(tmp_path / "x.csv")], main=estimator, needle="--system")
     _fails(capsys, ["serve", "--models", str(tmp_path / "none")], needle="does not exist")
 
@@ -109,6 +115,20 @@ def test_help_names_each_default_once_and_no_empty_default(capsys) -> None:
         assert seed is None or re.search(r"\(default: \d+\)", seed), (name, seed)  # 0 is a default too
         for block in re.split(r"\n  (?=-)", text):  # one option's help per block
             assert len(re.findall(r"\bdefault\b", block)) <= 1, (name, block)
+
+
+def test_help_texts_are_plain_text_without_the_docstrings_markup(capsys) -> None:
+    """Descriptions taken from module docstrings read as plain text: no reST literals
+    (double backquotes) or roles (``:func:`~a.b``) in any command's --help."""
+    from agents.experiments.report import main as report
+    from agents.experiments.rl import main as rl
+
+    for main, argv in ((gpbf, []), (gpbf, ["router"]), (gpbf, ["serve"]), (gpbf, ["reproduce"]),
+                       (gpbf, ["train-agent"]), (estimator, ["train"]), (rl, []), (report, [])):  # fmt: skip
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        text = capsys.readouterr().out
+        assert text.startswith("usage:") and "``" not in text and not re.search(r":[a-z]+:`", text), text
 
 
 def test_python_m_estimator_service_help_lists_its_commands() -> None:
@@ -325,14 +345,21 @@ def test_zenoh_mistakes_are_one_line_without_rust_internals(capsys, tmp_path: Pa
     text, json5 = tmp_path / "z.txt", tmp_path / "z.json5"
     text.write_text("hello")
     json5.write_text("{listen: 5}")
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"mode": "router",\n "x": }')
     for argv, needle in (
-        (["router", "--listen", "garbage"], "endpoints ['garbage']: Endpoints must be of the form"),
-        (["router", "--connect", "tcp/"], "endpoints ['tcp/127.0.0.1:7447', 'tcp/']:"),
+        (["router", "--listen", "garbage"], "--listen garbage: Endpoints must be of the form"),
+        (["router", "--connect", "tcp/"], "--connect tcp/: Endpoints must be of the form"),
         (["router", "--zenoh-config", str(text)], f"--zenoh-config {text}: Unsupported file type"),
         (["router", "--zenoh-config", str(json5)], "expected struct ListenConfig (line 1, column 10)"),
-    ):
+        (["router", "--zenoh-config", str(broken)],
+         "expected array, boolean, null, number, object, or string (line 2, column 7)"),
+        (["router", "--listen", "tcp/127.0.0.1:99999"], "invalid port value (mode router, listening on "
+         "['tcp/127.0.0.1:99999']"),
+    ):  # fmt: skip
         err = _fails(capsys, argv, main=estimator, needle=needle)
         assert ".rs:" not in err and "Message {" not in err and "Location" not in err, err
+        assert "column" not in err or "--zenoh-config" in err, err  # no place in JSON the user never wrote
 
 
 def test_plot_without_matplotlib_is_one_line_before_any_work(capsys, monkeypatch, tmp_path: Path) -> None:

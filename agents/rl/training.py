@@ -364,6 +364,8 @@ def load_agent(path: str | Path, models: str | Path | None = None) -> tuple[Base
     The spec's model folder is resolved against the agent's folder (so an agent and its
     models can move together and be run from any directory); ``models`` overrides it.
     """
+    if Path(path).is_file() and Path(path).suffix != ".zip":
+        raise ValueError(f"agent {os.fspath(path)!r}: a file, not an agent's folder or its .zip model")
     folder = agent_folder(path)
     model_file = Path(path) if Path(path).suffix == ".zip" else folder / "model.zip"
     spec_file = folder / "agent.json"

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.files import atomic_savez, npz_oversized
+from estimator_service.files import atomic_savez, npz_oversized, npz_unreadable
 from estimator_service.gp.base import GPModel, Scaler
 from estimator_service.gp.circular import CircularGP
 from estimator_service.gp.enhanced import EnhancedGP, JacobianFunction, MeanFunction
@@ -217,7 +217,7 @@ def _read(path: str | os.PathLike[str]) -> tuple[Arrays, str]:
     except FileNotFoundError:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        raise ModelFileError(f"{where}: unreadable or truncated ({exc})") from exc
+        raise ModelFileError(f"{where}: {npz_unreadable(exc)}") from exc
     if "__format__" not in data:
         raise ModelFileError(f"{where}: no '__format__' entry (not a gpbf GP file?)")
     fmt = data["__format__"]

@@ -41,9 +41,16 @@ def _plain(m: re.Match) -> str:
     return m["msg"].rstrip(".:") + where
 
 
+_PARSER_REPORT = re.compile(r"-->\s*(?P<line>\d+):(?P<col>\d+).*?\n\s*=\s*(?P<msg>[^\n]+)", re.S)
+
+
 def zenoh_message(exc: BaseException) -> str:
-    """A zenoh error as a user reads it: without Rust source paths and internal structures."""
-    return _WRAPPED.sub(_plain, _RUST_PLACE.sub("", str(exc))).strip()
+    """A zenoh error as a user reads it, on one line: without Rust source paths and internal
+    structures; a JSON5 parser's drawing of the place (``--> 3:7``, the line, a caret) as
+    ``message (line 3, column 7)``."""
+    text = _WRAPPED.sub(_plain, _RUST_PLACE.sub("", str(exc))).strip()
+    text = _PARSER_REPORT.sub(lambda m: f"{m['msg'].strip()} (line {m['line']}, column {m['col']})", text)
+    return " ".join(text.split())
 
 
 def lease_in_effect_s(cfg: zenoh.Config) -> float:
@@ -63,8 +70,24 @@ def zenoh_config(
             cfg.insert_json5(_LEASE_KEY, str(int(lease_ms)))
         return cfg
     except zenoh.ZError as exc:
-        where = f"--zenoh-config {file}" if file is not None else f"endpoints {[*listen, *connect]}"
-        raise ValueError(f"{where}: {zenoh_message(exc)}") from None
+        said = zenoh_message(exc)
+        if file is None:  # the place is in the JSON built from the options, not the user's
+            said = re.sub(r" \(line \d+, column \d+\)$", "", said)
+        raise ValueError(f"{_culprit(listen, connect, file)}: {said}") from None
+
+
+def _culprit(listen, connect, file: Path | None) -> str:
+    """The option a refused configuration came from: the file, or the first endpoint that
+    zenoh refuses alone (``--listen X`` or ``--connect X``)."""
+    if file is not None:
+        return f"--zenoh-config {file}"
+    for option, endpoints in (("--listen", listen), ("--connect", connect)):
+        for e in endpoints:
+            try:
+                _config([e] if option == "--listen" else [], [e] if option == "--connect" else [], None)
+            except zenoh.ZError:
+                return f"{option} {e}"
+    return f"endpoints {[*listen, *connect]}"
 
 
 def _config(listen, connect, file: Path | None) -> zenoh.Config:

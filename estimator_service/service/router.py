@@ -58,8 +58,12 @@ def main(argv: list[str] | None = None) -> int:
         cfg = router_config(
             tuple(args.listen or (DEFAULT_ENDPOINT,)), args.zenoh_config, tuple(args.connect or ())
         )
-        session = zenoh.open(cfg)
     except (ValueError, zenoh.ZError) as exc:
         print(f"gpbf router: error: {zenoh_message(exc)}", file=sys.stderr)
+        return 2
+    try:
+        session = zenoh.open(cfg)
+    except zenoh.ZError as exc:  # e.g. a port out of range, a host that does not resolve
+        print(f"gpbf router: error: {zenoh_message(exc)} ({describe(cfg)})", file=sys.stderr)
         return 2
     return serve_until_stopped("gpbf router", describe(cfg), session.close)
