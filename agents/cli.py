@@ -18,7 +18,10 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from estimator_service.cli import add_train_track, run
 from estimator_service.cli_args import (
@@ -35,6 +38,9 @@ from estimator_service.cli_args import (
 )
 from estimator_service.files import json_text
 from estimator_service.progress import ProgressBar
+
+if TYPE_CHECKING:
+    from agents.rl import AgentSpec
 
 __all__ = ["main"]
 
@@ -61,7 +67,7 @@ def _collect(args: argparse.Namespace) -> int:
 
 
 def _train_agent(args: argparse.Namespace) -> int:
-    from agents.rl import AgentSpec, evaluate_agent, train_agent
+    from agents.rl import AgentSpec, evaluate_agent
 
     if args.pf_update is not None:
         raise ValueError("--pf-update: train-agent's particle filters take the model kind's update rule")
@@ -75,7 +81,35 @@ def _train_agent(args: argparse.Namespace) -> int:
         str(args.models) if args.models else None,
         args.seed,
     )
-    path = train_agent(
+    with _threads(args.threads):
+        path = _train(args, spec)
+    print(f"wrote {path}, {args.out / 'learning_curve.png'} and {args.out / 'run.json'}")
+    print(json_text({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
+    return 0
+
+
+@contextmanager
+def _threads(n: int | None) -> Iterator[None]:
+    """Torch's and the BLAS libraries' threads set to ``n`` meanwhile (None: as they are)."""
+    if n is None:
+        yield
+        return
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        with threadpool_limits(n):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _train(args: argparse.Namespace, spec: AgentSpec) -> Path:
+    from agents.rl import train_agent
+
+    return train_agent(
         spec,
         args.timesteps,
         args.out,
@@ -89,9 +123,6 @@ def _train_agent(args: argparse.Namespace) -> int:
         resume=args.resume,
         command=["gpbf", *sys.argv[1:]],
     )
-    print(f"wrote {path}, {args.out / 'learning_curve.png'} and {args.out / 'run.json'}")
-    print(json_text({"agent": str(path), **evaluate_agent(path, episodes=args.eval_episodes)}))
-    return 0
 
 
 def _eval_agent(args: argparse.Namespace) -> int:
@@ -261,6 +292,11 @@ def _add_train_agent(sub) -> None:
         "--eval-episodes", type=checked_int(1, 10_000), default=5, help="episodes of the final evaluation"
     )
     a.add_argument("--seed", type=seed, default=0, help="seed of the agent and the envs")
+    a.add_argument(
+        "--threads", type=checked_int(1, 256), default=None,
+        help="torch and BLAS threads (default: the libraries'); the agent depends on it: the RL "
+             "experiment trains each agent on 1",
+    )  # fmt: skip
     a.add_argument("--out", type=Path, default=Path("out/agent"), help="output folder")
     add_quiet(a)
     a.set_defaults(func=_train_agent)

@@ -39,6 +39,7 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["train", "f.npz", "--points", "1"], "--points"),
         (["train", "f.npz", "--calibration-seconds", "-5"], "--calibration-seconds"),
         (["train-agent", "--timesteps", "0"], "--timesteps"),
+        (["train-agent", "--threads", "0"], "--threads"),
         (["eval-agent", "a.zip", "--episodes", "0"], "--episodes"),
         (["reproduce", "--jobs", "0"], "--jobs"),
         (["gap-sweep", "--jobs", "65"], "--jobs"),

@@ -364,7 +364,8 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     """Tiny budgets: results.json holds per task and variant the success rate and mean
     return, the pilot's figures and the targets; the report, both figures and the
     agent-data table are written; the command the report prints for an agent gives its
-    figures."""
+    figures, and the train-agent command it prints trains the same agent, parameter for
+    parameter (without ``--threads 1`` a PPO agent's parameters differ)."""
     import json
     import shutil
     from dataclasses import replace
@@ -425,6 +426,20 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     again = json.loads(capsys.readouterr().out)
     saved = json.loads((agent.parent / "result.json").read_text())
     assert again["mean_return"] == saved["mean_return"] and again["success_rate"] == saved["success_rate"]
+    train = next(ln for ln in report.splitlines() if ln.startswith("- hover-belief-0: `gpbf train-agent "))
+    argv = train.split("`")[1].split()[1:]
+    assert argv[argv.index("--out") + 1] == "out/hover-belief-0"
+    argv[argv.index("--out") + 1] = str(tmp_path / "again")
+    assert gpbf_main([*argv, "--quiet"]) == 0  # the printed command trains the same agent
+    import torch
+
+    from agents.rl.training import load_agent
+
+    mine, theirs = (
+        load_agent(f)[0].policy.state_dict()
+        for f in (tmp_path / "again", agent.parent.parent / "hover-belief-0")
+    )
+    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
     from agents.experiments.report_notes import NOTES_MARKER
 
     (tmp_path / "report.md").write_text(f"{report}\n{NOTES_MARKER}\n## Reading the table\n")

@@ -35,10 +35,22 @@ from estimator_service.files import atomic_write_text, json_text
 from estimator_service.progress import ProgressBar
 from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["RLSettings", "agent_weights", "gap_closed", "main", "report_existing", "run", "summarise"]
+__all__ = [
+    "RLSettings",
+    "agent_weights",
+    "curve_freq",
+    "gap_closed",
+    "main",
+    "report_existing",
+    "run",
+    "summarise",
+    "train_command",
+]
 
 EVAL_SEED = 5000  # the held-out episodes every agent and the pilot fly
 CURVE_POINTS = 10  # evaluations during training
+CURVE_EPISODES = 8  # episodes of each of them
+DEFAULT_BUDGET = 1_000_000  # the hyperparameter files' n_timesteps
 # Progress weights (docs/measurements.md#progress-weights): an agent's training cost over a
 # true-state agent's of the same budget (the filter variants step a filter too), and an agent
 # a resumed run finds trained (its result.json read back), as a share of a training's cost.
@@ -75,19 +87,36 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
         return json.loads(done.read_text())
     with threadpool_limits(1):
         spec = AgentSpec(cfg.algo, variant, task, "ekf", cfg.model, str(models), seed)
-        budget = cfg.timesteps or 1_000_000
         path = train_agent(
             spec,
             cfg.timesteps,
             folder,
-            eval_freq=max(budget // CURVE_POINTS, 1000),
-            eval_episodes=8,
+            eval_freq=curve_freq(cfg.timesteps),
+            eval_episodes=CURVE_EPISODES,
             progress_bar=False,
             tensorboard=out / "tensorboard" if cfg.tensorboard else None,
         )
         res = evaluate_agent(path, episodes=cfg.episodes, seed=EVAL_SEED)
     atomic_write_text(done, json_text(res))
     return res
+
+
+def curve_freq(timesteps: int | None) -> int:
+    """Steps between the learning curve's evaluations: ``CURVE_POINTS`` over the budget."""
+    return max((timesteps or DEFAULT_BUDGET) // CURVE_POINTS, 1000)
+
+
+def train_command(spec: AgentSpec, timesteps: int | None, models: str, out: str) -> list[str]:
+    """The ``gpbf train-agent`` command that trains ``spec``'s agent as this experiment does
+    (same seed, hyperparameters, learning-curve schedule and checkpoints; the experiment's
+    ``_job``), with the model folder ``models`` and output folder ``out`` as shown."""
+    return [
+        "gpbf", "train-agent", "--algo", spec.algo, "--obs", spec.variant, "--task", spec.task,
+        "--filter", spec.filter, "--model", spec.model, "--models", models, "--seed", str(spec.seed),
+        *(["--timesteps", str(timesteps)] if timesteps else []),
+        "--eval-freq", str(curve_freq(timesteps)), "--curve-episodes", str(CURVE_EPISODES), "--threads", "1",
+        "--out", out,
+    ]  # fmt: skip
 
 
 def _models(out: Path, cfg: RLSettings) -> Path:

@@ -87,7 +87,20 @@ def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
         figures = (f"{res['success_rate']:.2f} | {res['mean_return']:.1f}" if "mean_return" in res
                    else "- | -")  # fmt: skip
         lines.append(f"| {model.parent.name} | `{cmd}` | {figures} |")
+    lines += ["", "The command that trains each agent again as this run did (same seed, hyperparameters, "
+              "learning-curve evaluations and checkpoints; `--out` any new folder):", ""]  # fmt: skip
+    lines += [f"- {model.parent.name}: `{' '.join(_train_command(model.parent, meta))}`" for model in agents]
     return lines
+
+
+def _train_command(folder: Path, meta: dict[str, Any]) -> list[str]:
+    """``gpbf train-agent ...`` for the agent saved in ``folder`` (its ``agent.json``)."""
+    from agents.experiments.rl import train_command
+    from agents.rl import AgentSpec
+
+    spec = AgentSpec(**json.loads((folder / "agent.json").read_text()))
+    models = _shown((folder / spec.models).resolve()) if spec.models else "models"
+    return train_command(spec, meta["timesteps"], models, f"out/{folder.name}")
 
 
 def _shown(path: Path) -> str:
