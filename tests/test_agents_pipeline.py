@@ -247,9 +247,14 @@ def test_gap_sweep_runs_on_tiny_sizes(tmp_path: Path, monkeypatch: pytest.Monkey
     ).read_text()
     section = "\n".join(report_lines(run))
     assert "| 1 |" in section and f"({SWEEP_FOLDER}/gap_sweep.png)" in section
+    assert (
+        section.count("Provenance: code ") == 1
+        and "Provenance: code " in (tmp_path / "gap_sweep.md").read_text()
+    )
     monkeypatch.setattr(gap_module, "train_models", _no_training)  # resumes: the same table
     monkeypatch.setattr(gap_module, "tracking", _no_training)
-    assert gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False) == res
+    again = gap_sweep(tmp_path, s, strengths=(0.0, 1.0), progress=False)
+    assert again.pop("provenance")["wall_s"] < res.pop("provenance")["wall_s"] and again == res
     with pytest.raises(ValueError, match=r"other settings \(strengths\)"):
         gap_sweep(tmp_path, s, strengths=(0.0, 2.0), progress=False)
 

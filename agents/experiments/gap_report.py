@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from agents.experiments.provenance import provenance_line
+
 __all__ = ["FILTERS", "KINDS", "SWEEP_FOLDER", "describe", "report_lines"]
 
 KINDS = ("param", "gp", "egp")
@@ -20,6 +22,7 @@ def describe(result: dict) -> list[str]:
     lines = [
         "## Improvement over Param against the reality gap (Table 7 measure, %)",
         "",
+        *([provenance_line(result["provenance"]), ""] if "provenance" in result else []),
         "| strength | " + " | ".join(c.upper() for c in cols) + " |",
         "| ---: | " + " | ".join("---:" for _ in cols) + " |",
     ]
@@ -35,8 +38,9 @@ def report_lines(out: Path) -> list[str]:
         return []
     result = json.loads(path.read_text())
     s = result["settings"]
+    head = 4 if "provenance" in result else 2  # the heading (and the provenance line)
     return [
-        *describe(result)[:2],
+        *describe(result)[:head],
         f"Beyond the paper (`gpbf gap-sweep`, seed {s['seed']}, the sizes above): one scripted flight "
         "per reality strength in the lab's drafts (0: the textbook world the parametric model "
         "describes, 1: the lab, 2: twice its unmodelled physics), the same cross-validation, and "
@@ -44,6 +48,6 @@ def report_lines(out: Path) -> list[str]:
         "",
         f"![gap sweep]({SWEEP_FOLDER}/gap_sweep.png)",
         "",
-        *describe(result)[2:],
+        *describe(result)[head:],
         "",
     ]

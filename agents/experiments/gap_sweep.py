@@ -10,6 +10,7 @@ of the GP and EGP models with the EKF and the UKF. Writes ``gap_sweep.json``, a 
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 from agents.experiments.gap_report import FILTERS, KINDS, describe
 from agents.experiments.measures import improvement
 from agents.experiments.parallel import check_jobs, run_all
+from agents.experiments.provenance import code_version, provenance
 from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
@@ -55,6 +57,7 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
     Resumes like :func:`~agents.experiments.reproduce.reproduce`: complete fold models and
     their scores from an earlier run with the same settings are kept."""
     check_jobs(jobs)
+    start, code = time.monotonic(), code_version()  # the code that runs, not the checkout at the end
     resume_check(out, {**asdict(s), "strengths": list(strengths)})
     units = []
     for strength in strengths:
@@ -76,7 +79,8 @@ def gap_sweep(out: Path, s: ReproduceSettings, strengths: tuple[float, ...] = ST
             for k in KINDS
             if k != "param"
         }
-    result = {"settings": asdict(s), "strengths": list(strengths), "improvement_pct": table}
+    result = {"settings": asdict(s), "strengths": list(strengths), "improvement_pct": table,
+              "provenance": provenance(time.monotonic() - start, code=code)}  # fmt: skip
     atomic_write_text(out / "gap_sweep.json", json_text(result, indent=2))
     atomic_write_text(out / "gap_sweep.md", "\n".join(describe(result)) + "\n")
     _plot(result, out / "gap_sweep.png")
