@@ -7,7 +7,14 @@ from pathlib import Path
 import pytest
 
 from agents.experiments.measures import aggregate_gain, improvement
-from agents.experiments.report import SHARP_ANGLE_SD_DEG, _checks, _filter_checks, beyond, claims
+from agents.experiments.report import (
+    SHARP_ANGLE_SD_DEG,
+    WHY_ELSEWHERE,
+    _checks,
+    _filter_checks,
+    beyond,
+    claims,
+)
 from agents.experiments.report_notes import NOTES_MARKER, write_keeping_notes
 from agents.experiments.report_why import WHY
 
@@ -119,11 +126,14 @@ def test_ukf_against_ekf_averages_the_groups_and_failed_claims_get_their_explana
     base = _row(40.0, 2.0, 40.0, 2.0)
     tr = {"ekf/param": base, "ukf/param": base, "ekf/gp": _row(20.0, 1.0, 20.0, 1.0),
           "ukf/gp": _row(19.8, 1.1, 19.8, 1.1)}  # fmt: skip
-    lines = _checks({"tracking": tr, "table5_6": {}})
+    lines = _checks({"tracking": tr, "table5_6": {}, "settings": {"reality": "clean"}})
     row = next(line for line in lines if "the UKF improves over its Param at least as much" in line)
     assert row.endswith("| **no** |")
     explanation = dict(WHY)["the UKF improves over its Param"]
     assert f"- {explanation}" in lines
+    # measured in the textbook world: a lab-world report points to its runs' notes instead
+    lab = _checks({"tracking": tr, "table5_6": {}, "settings": {"reality": "lab"}})
+    assert f"- {explanation}" not in lab and WHY_ELSEWHERE in lab
 
 
 def test_a_regenerated_report_keeps_its_hand_written_notes_once(tmp_path: Path) -> None:

@@ -71,7 +71,7 @@ WHY = (
         "lost segments: a camera frame could leave one particle with nearly all the weight "
         "(effective sample size about 1), and roughening with the weighted cloud's covariance "
         "then shrank the cloud to a 3 mm position spread while its error grew to 0.7 m (seed-0 "
-        "run, fold 0, first segment). The PF now roughens with the Kalman-updated covariance "
+        "run, fold 0, first segment). The PF roughens with the Kalman-updated covariance "
         "of the predicted cloud, which one heavy particle cannot collapse; on the seed-0 "
         "run's models this took the aggregate RMS from 24.9 to 13.3 (GP), 20.7 to 10.4 (EGP), "
         "27.2 to 9.9 (hetGP), 15.3 to 11.8 (sparse) and 17.0 to 16.2 (Param). What keeps the "
@@ -84,7 +84,7 @@ WHY = (
         "costs 0.17-0.21 s at 500 particles, so the paper's 2000 particles were not tried. "
         "In the lab world the GP particle filters still lost whole segments: Table 1's weights "
         "left 1 to 20 of 500 particles from the first camera frame of a lost segment (lab "
-        "seed-0 run, fold 1, first segment). For learned models the PF now bridges to an "
+        "seed-0 run, fold 1, first segment). For learned models the PF bridges to an "
         "ensemble Kalman move when a frame is too sharp for its particles (Frei & Kuensch "
         "2013), chosen on flights no report uses by rules written before their runs "
         "(docs/results/pf_update).",
@@ -128,9 +128,7 @@ WHY = (
         "The UKF's and the EKF's improvements differ by a few points either way, within the "
         "fold-to-fold spread. In the seed-0 full run GP-UKF and GP-EKF were within 1% of each other on both "
         "measures (+0.9% per group, -0.7% on aggregate RMS), well inside the fold-to-fold "
-        "spread (about 2.4 aggregate RMS); at seed 1 the UKF was ahead by 1.3% per group. In "
-        "the quick run both GP filters are far behind the parametric ones (aggregate RMS 53 "
-        "and 66 against 19), so their order says little.",
+        "spread (about 2.4 aggregate RMS); at seed 1 the UKF was ahead by 1.3% per group.",
     ),
     (
         "hetGP best",
