@@ -24,14 +24,18 @@ from estimator_service.flight import Flight
 from estimator_service.system import Group, System
 
 __all__ = [
+    "FAILED_SHARE",
     "GAUSSIAN_COVERAGE",
     "GROUPS",
+    "LOST_ANGLE_SHARE",
     "RELIABILITY_LEVELS",
     "TrackResult",
     "aggregate_rms",
     "coverage_by_sigma",
     "group_mean_norm",
     "group_rms",
+    "lost_angle_sd",
+    "lost_angle_steps",
     "mean_sd",
     "reliability",
     "score",
@@ -243,7 +247,9 @@ def score(r: TrackResult) -> dict[str, float]:
     (``exact_<group>``).
 
     A run fails when the truth is outside the 3-sigma ellipsoid of the estimate
-    (chi-square 99.73% with ``n`` degrees of freedom) on more than 10% of the steps.
+    (chi-square 99.73% with ``n`` degrees of freedom) on more than 10% of the steps, or
+    when the belief has lost an angle (:func:`lost_angle_steps`, ``lost_steps``) on more
+    than 10% of them: a belief wide enough to hold any truth has lost track too.
     """
     e = r.error
     n = e.shape[1]
@@ -275,10 +281,35 @@ def score(r: TrackResult) -> dict[str, float]:
     for g in _blimp_groups() if r.system is None else r.system.groups:
         cols = list(g.indices)
         out[f"within3_{g.name}"] = within_3sigma(e[:, cols], r.cov[:, cols][:, :, cols])
-    out["failed"] = float(outside > 0.10)
+    out["lost_steps"] = float(np.mean(lost_angle_steps(r.cov, (r.system or _blimp()).state_periods)))
+    out["failed"] = float(outside > FAILED_SHARE or out["lost_steps"] > FAILED_SHARE)
     out["step_ms"] = r.step_s * 1e3
     out["diverged_steps"] = float(np.sum(r.diverged))
     return out
+
+
+#: a run fails when more of its steps than this are outside 3 sigma, or lost (:func:`score`)
+FAILED_SHARE = 0.10
+#: an angle's belief is lost when its standard deviation exceeds this share of a belief that
+#: knows nothing (uniform on the circle: period / sqrt(12); for a full turn 103.9 deg, so 52 deg)
+LOST_ANGLE_SHARE = 0.5
+
+
+def lost_angle_sd(period: float) -> float:
+    """The standard deviation above which an angle of ``period`` counts as lost."""
+    return LOST_ANGLE_SHARE * period / math.sqrt(12.0)
+
+
+def lost_angle_steps(cov: FloatArray, periods: Sequence[float]) -> NDArray[np.bool_]:
+    """``(T,)``: the steps at which the belief ``cov (T, n, n)`` has lost an angle (the
+    components with a period in ``periods (n,)``; none: never lost)."""
+    periods = np.asarray(periods, dtype=float)
+    angles = np.flatnonzero(periods > 0)
+    if angles.size == 0:
+        return np.zeros(cov.shape[0], dtype=bool)
+    var = np.diagonal(cov, axis1=1, axis2=2)[:, angles]
+    limit = np.array([lost_angle_sd(p) for p in periods[angles]])
+    return np.any(~(var <= limit**2), axis=1)  # NaN variances count as lost
 
 
 #: per-dimension coverage of a Gaussian belief within 1, 2 and 3 standard deviations

@@ -55,3 +55,37 @@ def test_reliability_is_the_diagonal_for_a_calibrated_belief_and_below_it_when_o
     expected = 2 * norm.cdf(norm.ppf((1 + levels) / 2) / 2) - 1
     np.testing.assert_allclose(wide, expected, atol=4 * np.sqrt(0.25 / (2 * t)))
     assert np.all(wide < levels)
+
+
+def test_a_run_whose_belief_has_lost_the_yaw_fails_though_the_truth_stays_inside() -> None:
+    """A run fails when the truth leaves 3 sigma on more than 10 % of its steps, or when
+    its belief has lost an angle (standard deviation above half a uniform belief's: 52 deg
+    for a full turn) on more than 10 % of them: such a belief holds any truth within 3 sigma
+    and has lost track all the same."""
+    import math
+
+    from estimator_service.tracking import TrackResult, lost_angle_sd, score
+
+    rng = np.random.default_rng(4)
+    t, n = 200, 12
+    sd = np.full(n, 0.01)
+    truth = rng.normal(size=(t, n)) * 0.1
+    truth[:, 3:6] = 0.0
+    mean = truth + rng.normal(size=(t, n)) * sd
+
+    def run(yaw_sd: np.ndarray) -> dict[str, float]:
+        cov = np.broadcast_to(np.diag(sd**2), (t, n, n)).copy()
+        cov[:, 5, 5] = yaw_sd**2
+        none = np.zeros(t, np.int64)
+        return score(TrackResult(mean, cov, truth, np.zeros(t), none, none.astype(bool), 0.0))
+
+    assert math.degrees(lost_angle_sd(2 * math.pi)) == pytest.approx(51.96, abs=0.01)
+    sharp = run(np.full(t, 0.01))
+    assert sharp["failed"] == 0.0 and sharp["lost_steps"] == 0.0
+    lost = np.full(t, 0.01)
+    lost[:30] = math.radians(60)  # 15 % of the steps: the yaw's belief is nearly uniform
+    wide = run(lost)
+    assert wide["outside_3sigma"] < 0.1 and wide["lost_steps"] == pytest.approx(0.15)
+    assert wide["failed"] == 1.0
+    lost[:30] = math.radians(50)  # sharp enough: not lost
+    assert run(lost)["failed"] == 0.0
