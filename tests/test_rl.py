@@ -426,20 +426,21 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     again = json.loads(capsys.readouterr().out)
     saved = json.loads((agent.parent / "result.json").read_text())
     assert again["mean_return"] == saved["mean_return"] and again["success_rate"] == saved["success_rate"]
-    train = next(ln for ln in report.splitlines() if ln.startswith("- hover-belief-0: `gpbf train-agent "))
-    argv = train.split("`")[1].split()[1:]
-    assert argv[argv.index("--out") + 1] == "out/hover-belief-0"
-    argv[argv.index("--out") + 1] = str(tmp_path / "again")
-    assert gpbf_main([*argv, "--quiet"]) == 0  # the printed command trains the same agent
     import torch
 
     from agents.rl.training import load_agent
 
-    mine, theirs = (
-        load_agent(f)[0].policy.state_dict()
-        for f in (tmp_path / "again", agent.parent.parent / "hover-belief-0")
-    )
-    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
+    for name in ("hover-belief-0", "hover-state-0"):  # with a filter's models, and without
+        train = next(ln for ln in report.splitlines() if ln.startswith(f"- {name}: `gpbf train-agent "))
+        argv = train.split("`")[1].split()[1:]
+        assert argv[argv.index("--out") + 1] == f"out/{name}" and ("--models" in argv) == ("belief" in name)
+        argv[argv.index("--out") + 1] = str(tmp_path / "again" / name)
+        assert gpbf_main([*argv, "--quiet"]) == 0  # the printed command trains the same agent
+        mine, theirs = (
+            load_agent(f)[0].policy.state_dict()
+            for f in (tmp_path / "again" / name, agent.parent.parent / name)
+        )
+        assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine), name
     from agents.experiments.report_notes import NOTES_MARKER
 
     (tmp_path / "report.md").write_text(f"{report}\n{NOTES_MARKER}\n## Reading the table\n")

@@ -109,10 +109,12 @@ def curve_freq(timesteps: int | None) -> int:
 def train_command(spec: AgentSpec, timesteps: int | None, models: str, out: str) -> list[str]:
     """The ``gpbf train-agent`` command that trains ``spec``'s agent as this experiment does
     (same seed, hyperparameters, learning-curve schedule and checkpoints; the experiment's
-    ``_job``), with the model folder ``models`` and output folder ``out`` as shown."""
+    ``_job``), with the model folder ``models`` (belief variants only: the others fly no
+    filter) and output folder ``out`` as shown."""
+    beliefs = ["--filter", spec.filter, "--model", spec.model, "--models", models]  # the filter's
     return [
         "gpbf", "train-agent", "--algo", spec.algo, "--obs", spec.variant, "--task", spec.task,
-        "--filter", spec.filter, "--model", spec.model, "--models", models, "--seed", str(spec.seed),
+        *(beliefs if spec.variant.startswith("belief") else []), "--seed", str(spec.seed),
         *(["--timesteps", str(timesteps)] if timesteps else []),
         "--eval-freq", str(curve_freq(timesteps)), "--curve-episodes", str(CURVE_EPISODES), "--threads", "1",
         "--out", out,
