@@ -133,7 +133,7 @@ def npz_unreadable(exc: Exception) -> str:
     """Why ``np.load(path, allow_pickle=False)`` raised ``exc``, in a user's terms: a file that
     is neither a zip archive nor a ``.npy`` array makes NumPy suggest an unsafe pickle load,
     which would be wrong advice for a file that is simply not ``.npz``."""
-    if isinstance(exc, ValueError) and "file contains pickled" in str(exc):  # NumPy 1.x-2.x wording
+    if isinstance(exc, ValueError) and "pickled" in str(exc):  # not "allow_pickle": an object array
         return "not a NumPy .npz file (neither a zip archive nor a .npy array)"
     return f"unreadable or truncated ({exc})"
 

@@ -270,7 +270,26 @@ def test_a_command_run_as_python_m_is_recorded_as_one_that_runs(monkeypatch: pyt
     )
     monkeypatch.setattr(sys, "argv", ["/work/agents/experiments/rl.py", "--out", "x"])
     assert named_argv() == ["python", "-m", "agents.experiments.rl", "--out", "x"]
+    monkeypatch.setattr(sys, "orig_argv", ["python3", "-magents.experiments.rl", "--out", "x"])
+    assert named_argv() == ["python", "-m", "agents.experiments.rl", "--out", "x"]
     monkeypatch.setattr(sys, "orig_argv", ["/usr/bin/python3", "/work/tool.py", "-m", "y"])
     monkeypatch.setattr(sys, "argv", ["/work/tool.py", "-m", "y"])
     assert named_argv() == ["tool.py", "-m", "y"]
     assert named_argv(["/opt/bin/gpbf", "reproduce"]) == ["gpbf", "reproduce"]
+
+
+def test_a_report_states_the_failure_rule_its_scores_were_made_with() -> None:
+    """Scores made before a lost belief counted as a failed run say so; scores that carry
+    ``lost_steps`` state both halves of the rule. A run from before the worlds had names
+    (no ``reality`` setting: the textbook world) keeps the explanations measured there."""
+    from agents.experiments.report import _failure_rule
+
+    old = {"ukf/param": _row(40.0, 1.0, 20.0, 1.0)}
+    assert _failure_rule(old).endswith("(scored before lost beliefs counted as failed too)")
+    new = {"ukf/param": {**_row(40.0, 1.0, 20.0, 1.0), "lost_steps": 0.0}}
+    assert "has lost an angle" in _failure_rule(new) and "scored before" not in _failure_rule(new)
+    base = _row(40.0, 2.0, 40.0, 2.0)
+    tr = {"ekf/param": base, "ukf/param": base, "ekf/gp": _row(20.0, 1.0, 20.0, 1.0),
+          "ukf/gp": _row(19.8, 1.1, 19.8, 1.1)}  # fmt: skip
+    unnamed = _checks({"tracking": tr, "table5_6": {}, "settings": {}})
+    assert f"- {dict(WHY)['the UKF improves over its Param']}" in unnamed

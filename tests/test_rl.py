@@ -387,6 +387,9 @@ def test_rl_experiment_and_agent_data_loop_smoke(
     run(tmp_path, cfg)
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["provenance"]["code"] == "abc0001"  # the code that trained them
+    record = json.loads((tmp_path / "agents" / "hover-belief-0" / "run.json").read_text())
+    assert record["versions"]["code"] == "abc0001"  # the experiment's, not the worker's own reading
+    assert " ".join(record["command"]) == data["provenance"]["command"]  # not the process pool's
     hover = data["results"]["hover"]
     assert set(hover) == {"state", "belief", "ellipses"}
     assert all(0 <= hover[v]["success_rate"] <= 1 and np.isfinite(hover[v]["mean_return"]) for v in hover)
@@ -455,14 +458,14 @@ def test_a_resumed_rl_run_counts_the_agents_it_finds_trained_as_a_sliver_of_the_
     about 90 minutes left), and the agents left weigh by variant."""
     import io
 
-    from agents.experiments.rl import FILTER_VARIANT_COST, RLSettings, agent_weights
+    from agents.experiments.rl import FILTER_VARIANT_COST, agent_weights
     from estimator_service.progress import ProgressBar
 
     todo = [("hover", v, s) for v in ("state", "belief", "ellipses") for s in range(3)]
     for s in range(3):
         (tmp_path / "agents" / f"hover-state-{s}").mkdir(parents=True)
         (tmp_path / "agents" / f"hover-state-{s}" / "result.json").write_text("{}")
-    weights = agent_weights(tmp_path, todo, RLSettings())
+    weights = agent_weights(tmp_path, todo)
     assert weights[3:] == [FILTER_VARIANT_COST] * 3 + [1.0] * 3
     stream = io.StringIO()
     bar = ProgressBar("train agents", unit="agent", weights=weights, stream=stream)

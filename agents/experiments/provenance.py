@@ -32,8 +32,10 @@ def named_argv(argv: list[str] | None = None) -> list[str]:
     e.g. ``rl.py``, cannot be run)."""
     if argv is None:
         orig = list(getattr(sys, "orig_argv", []))
-        if "-m" in orig[:-1] and orig[orig.index("-m") + 2 :] == sys.argv[1:]:
-            return ["python", "-m", orig[orig.index("-m") + 1], *sys.argv[1:]]
+        for i, arg in enumerate(orig[1:], start=1):  # python [options] -m module / -mmodule args
+            module, rest = (orig[i + 1 : i + 2], orig[i + 2 :]) if arg == "-m" else ([arg[2:]], orig[i + 1 :])
+            if arg.startswith("-m") and module and rest == sys.argv[1:]:
+                return ["python", "-m", module[0], *sys.argv[1:]]
     argv = list(sys.argv if argv is None else argv) or [""]
     return [Path(argv[0]).name, *argv[1:]]
 

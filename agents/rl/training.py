@@ -161,10 +161,10 @@ def latest_checkpoint(folder: str | Path, companions: tuple[str, ...] = ()) -> t
     return None
 
 
-def _versions() -> dict[str, str]:
+def _versions(code: str | None = None) -> dict[str, str]:
     from agents.experiments.provenance import code_version
 
-    out = {"code": code_version(), "python": platform.python_version()}
+    out = {"code": code or code_version(), "python": platform.python_version()}
     for name in _VERSIONED:
         try:
             out[name] = metadata.version(name.replace("_", "-"))
@@ -188,6 +188,7 @@ def train_agent(
     checkpoint_freq: int | None = None,
     resume: bool = False,
     command: Sequence[str] | None = None,
+    code: str | None = None,
 ) -> Path:
     """Train, evaluate periodically, checkpoint, save the model, the spec and a learning curve.
 
@@ -202,7 +203,9 @@ def train_agent(
     newest checkpoint of ``out_dir`` (its model, replay buffer, statistics and the learning
     curve up to it) to ``timesteps`` in all; the envs restart their episodes, so a resumed
     run is not step-for-step the uninterrupted one. ``out_dir/run.json`` records the command
-    line (``command``, default ``sys.argv``), these settings and the package versions.
+    line (``command``, default ``sys.argv``), these settings and the package versions with
+    the code version (``code``, default the checkout's now: an experiment passes the one it
+    started with, since its worker processes run the code they imported then).
     """
     params = load_hyperparams(spec.algo, agent_env_id(spec.task, spec.variant), hyperparams)
     timesteps = params.n_timesteps if timesteps is None else timesteps
@@ -255,7 +258,7 @@ def train_agent(
                 "hyperparams": None if hyperparams is None else os.fspath(hyperparams)}  # fmt: skip
     _record_run(out, {"command": named_argv(command), "spec": asdict(spec),
                       **settings, "resumed_from_steps": None if start is None else start[1],
-                      "versions": _versions()})  # fmt: skip
+                      "versions": _versions(code)})  # fmt: skip
     checkpoints = _Checkpoints(
         save_freq=max(1, checkpoint_freq // n_envs), save_path=str(out / CHECKPOINTS), name_prefix="agent",
         save_replay_buffer=True, save_vecnormalize=True,
