@@ -54,8 +54,8 @@ DEFAULT_BUDGET = 1_000_000  # the hyperparameter files' n_timesteps
 # Progress weights (docs/measurements.md#progress-weights): an agent's training cost over a
 # true-state agent's of the same budget (the filter variants step a filter too), and an agent
 # a resumed run finds trained (its result.json read back), as a share of a training's cost.
-FILTER_VARIANT_COST = 1.0
-KEPT_AGENT_COST = 1e-4
+FILTER_VARIANT_COST = 1.4
+KEPT_AGENT_COST = 0.004
 
 
 @dataclass(frozen=True)
