@@ -326,8 +326,8 @@ def _add_reproduce(sub) -> None:
     r.add_argument(
         "--quick",
         action="store_true",
-        help="small sizes (4-minute flight, 150 GP points, 2 folds): about a minute "
-        "on 2 cores, against a quarter of an hour at the paper's sizes",
+        help="small sizes (4-minute flight, 150 GP points, 2 folds): 1-3 minutes on 2 cores, "
+        "against 15-25 at the paper's sizes",
     )
     r.add_argument("--seed", type=seed, default=0, help="seed of the flight and the training")
     add_world_options(r)
