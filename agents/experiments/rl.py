@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from agents.experiments.provenance import code_version, named_argv, provenance
+from agents.experiments.rl_schedule import CURVE_EPISODES, curve_freq
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
@@ -38,19 +39,14 @@ from estimator_service.training import TrainSettings, train_models
 __all__ = [
     "RLSettings",
     "agent_weights",
-    "curve_freq",
     "gap_closed",
     "main",
     "report_existing",
     "run",
     "summarise",
-    "train_command",
 ]
 
 EVAL_SEED = 5000  # the held-out episodes every agent and the pilot fly
-CURVE_POINTS = 10  # evaluations during training
-CURVE_EPISODES = 8  # episodes of each of them
-DEFAULT_BUDGET = 1_000_000  # the hyperparameter files' n_timesteps
 # Progress weights (docs/measurements.md#progress-weights): an agent's training cost over a
 # true-state agent's of the same budget (the filter variants step a filter too), and an agent
 # a resumed run finds trained (its result.json read back), as a share of a training's cost.
@@ -106,26 +102,6 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
         res = evaluate_agent(path, episodes=cfg.episodes, seed=EVAL_SEED)
     atomic_write_text(done, json_text(res))
     return res
-
-
-def curve_freq(timesteps: int | None) -> int:
-    """Steps between the learning curve's evaluations: ``CURVE_POINTS`` over the budget."""
-    return max((timesteps or DEFAULT_BUDGET) // CURVE_POINTS, 1000)
-
-
-def train_command(spec: AgentSpec, timesteps: int | None, models: str, out: str) -> list[str]:
-    """The ``gpbf train-agent`` command that trains ``spec``'s agent as this experiment does
-    (same seed, hyperparameters, learning-curve schedule and checkpoints; the experiment's
-    ``_job``), with the model folder ``models`` (belief variants only: the others fly no
-    filter) and output folder ``out`` as shown."""
-    beliefs = ["--filter", spec.filter, "--model", spec.model, "--models", models]  # the filter's
-    return [
-        "gpbf", "train-agent", "--algo", spec.algo, "--obs", spec.variant, "--task", spec.task,
-        *(beliefs if spec.variant.startswith("belief") else []), "--seed", str(spec.seed),
-        *(["--timesteps", str(timesteps)] if timesteps else []),
-        "--eval-freq", str(curve_freq(timesteps)), "--curve-episodes", str(CURVE_EPISODES), "--threads", "1",
-        "--out", out,
-    ]  # fmt: skip
 
 
 def _models(out: Path, cfg: RLSettings) -> Path:

@@ -95,7 +95,7 @@ def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
 
 def _train_command(folder: Path, meta: dict[str, Any]) -> list[str]:
     """``gpbf train-agent ...`` for the agent saved in ``folder`` (its ``agent.json``)."""
-    from agents.experiments.rl import train_command
+    from agents.experiments.rl_schedule import train_command
     from agents.rl import AgentSpec
 
     spec = AgentSpec(**json.loads((folder / "agent.json").read_text()))
