@@ -82,8 +82,7 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
     from threadpoolctl import threadpool_limits
 
     torch.set_num_threads(1)
-    folder = _agent_folder(out, task, variant, seed)
-    done = folder / "result.json"
+    folder, done = _agent_folder(out, task, variant, seed), _result(out, task, variant, seed)
     if done.exists():
         return json.loads(done.read_text())
     with threadpool_limits(1):
@@ -119,6 +118,16 @@ def _agent_folder(out: Path, task: str, variant: str, seed: int) -> Path:
     return out / "agents" / f"{task}-{variant}-{seed}"
 
 
+def _result(out: Path, task: str, variant: str, seed: int) -> Path:
+    """An agent's evaluation, written last: its presence marks the agent trained (resume)."""
+    return _agent_folder(out, task, variant, seed) / "result.json"
+
+
+def _agents(cfg: RLSettings) -> list[tuple[str, str, int]]:
+    """Every (task, variant, seed) of the experiment, in training order."""
+    return [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
+
+
 def agent_weights(out: Path, todo: list[tuple[str, str, int]]) -> list[float]:
     """Each agent's estimated cost for the progress line, in true-state agents of this
     run's budget: ``KEPT_AGENT_COST`` for one already trained under ``out`` (resume),
@@ -130,7 +139,7 @@ def agent_weights(out: Path, todo: list[tuple[str, str, int]]) -> list[float]:
     """
     return [
         KEPT_AGENT_COST
-        if (_agent_folder(out, t, v, s) / "result.json").exists()
+        if _result(out, t, v, s).exists()
         else FILTER_VARIANT_COST
         if v.startswith("belief")
         else 1.0
@@ -147,7 +156,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     start, code = time.monotonic(), code_version()  # the code that trains, not the checkout at the end
     out.mkdir(parents=True, exist_ok=True)
     models = _models(out, cfg)
-    todo = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
+    todo = _agents(cfg)
     weights = agent_weights(out, todo)
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=max(1, cfg.jobs), mp_context=ctx) as pool:
@@ -173,14 +182,12 @@ def report_existing(out: Path, cfg: RLSettings) -> dict[str, Any]:
 
     runs: dict[str, dict[str, list[dict]]] = {}
     missing = []
-    for task in cfg.tasks:
-        for variant in cfg.variants:
-            for seed in range(cfg.seeds):
-                done = _agent_folder(out, task, variant, seed) / "result.json"
-                if done.exists():
-                    runs.setdefault(task, {}).setdefault(variant, []).append(json.loads(done.read_text()))
-                else:
-                    missing.append(f"{task}-{variant}-{seed}")
+    for task, variant, seed in _agents(cfg):
+        done = _result(out, task, variant, seed)
+        if done.exists():
+            runs.setdefault(task, {}).setdefault(variant, []).append(json.loads(done.read_text()))
+        else:
+            missing.append(f"{task}-{variant}-{seed}")
     if not runs:
         raise ValueError(f"--out {out}: no trained agent to report (no agents/*/result.json)")
     pilot = {task: evaluate_pilot(task, cfg.episodes, EVAL_SEED) for task in runs}
@@ -298,8 +305,7 @@ def _check(a: argparse.Namespace, cfg: RLSettings) -> int:
 
 def _trained(out: Path, cfg: RLSettings) -> list[tuple[str, str, int]]:
     """The (task, variant, seed) of ``cfg`` whose agent under ``out`` holds ``result.json``."""
-    every = [(t, v, s) for t in cfg.tasks for v in cfg.variants for s in range(cfg.seeds)]
-    return [k for k in every if (_agent_folder(out, *k) / "result.json").exists()]
+    return [k for k in _agents(cfg) if _result(out, *k).exists()]
 
 
 def _main(a: argparse.Namespace, cfg: RLSettings) -> int:
