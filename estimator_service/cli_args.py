@@ -57,12 +57,23 @@ class Parser(argparse.ArgumentParser):
 
     def parse_args(self, args=None, namespace=None):  # type: ignore[override]
         """As argparse's, but an option the chosen subcommand does not know is that
-        subcommand's error (``gpbf track: error: ...``, see ``gpbf track --help``)."""
-        ns, extras = self.parse_known_args(args, namespace)
+        subcommand's error (``gpbf track: error: ...``, see ``gpbf track --help``), and an
+        unknown option without a subcommand is named (``gpbf --bogus``), not reported as a
+        missing command."""
+        subs = [a for a in self._actions if isinstance(a, argparse._SubParsersAction)]
+        required = [s.required for s in subs]
+        for s in subs:  # checked below, after the unknown options
+            s.required = False
+        try:
+            ns, extras = self.parse_known_args(args, namespace)
+        finally:
+            for s, r in zip(subs, required, strict=True):
+                s.required = r
+        chosen = subs[0].choices.get(getattr(ns, subs[0].dest, None)) if subs else None
         if extras:
-            subs = [a for a in self._actions if isinstance(a, argparse._SubParsersAction)]
-            chosen = subs[0].choices.get(getattr(ns, subs[0].dest, None)) if subs else None
             (chosen or self).error(f"unrecognized arguments: {' '.join(extras)}")
+        if subs and required[0] and chosen is None:
+            self.error(f"the following arguments are required: {subs[0].metavar or subs[0].dest}")
         return ns
 
 

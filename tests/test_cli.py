@@ -47,6 +47,8 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["serve"], "--models"),
         (["frobnicate"], "invalid choice"),
         (["track", "f.npz", "--out", "x"], "gpbf track: error: unrecognized arguments: --out x"),
+        (["--bogus"], "gpbf: error: unrecognized arguments: --bogus"),
+        ([], "gpbf: error: the following arguments are required: command"),
     ],
 )
 def test_option_mistakes_are_one_line_with_exit_code_2(capsys, argv: list[str], needle: str) -> None:
