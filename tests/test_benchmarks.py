@@ -77,6 +77,19 @@ def test_benchmark_quick_mode_prints_json_last(script: str) -> None:
         assert last["queue_bytes_max_mb"] <= 4.0  # (the near-horizon p99 is timing: judged by the full run)
 
 
+def test_the_consistency_report_opens_with_its_provenance(tmp_path: Path) -> None:
+    """bench_consistency.py --out: its report's first line under the title names the code
+    version, the command and the wall time, as every committed report's does."""
+    out = tmp_path / "consistency" / "results.json"
+    subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_consistency.py"), "--smoke", "--out", str(out)],
+        check=True, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    line = (out.parent / "report.md").read_text().splitlines()[2]
+    assert line.startswith("Provenance: code ") and "bench_consistency.py --smoke --out" in line, line
+    assert set(json.loads(out.read_text())["provenance"]) == {"code", "command", "wall_s"}
+
+
 def test_the_real_robot_experiment_runs_quick_and_reports(tmp_path: Path) -> None:
     """docs/results/real_mrclam/experiment.py --quick: the committed event logs align, the
     user's models train (with the cross-fitted calibration), every judged figure is in
@@ -94,6 +107,8 @@ def test_the_real_robot_experiment_runs_quick_and_reports(tmp_path: Path) -> Non
     assert set(result["calibration"]) == {"param", "egp"}
     report = (tmp_path / "report.md").read_text()
     assert all(f"`{k}`" in report for k in judged) and "textbook ekf" in report
+    assert report.splitlines()[2].startswith("Provenance: code ") and "experiment.py --quick" in report
+    assert set(result["provenance"]) == {"code", "command", "wall_s"}
 
 
 def test_the_pf_update_experiment_runs_quick_and_summarises(tmp_path: Path) -> None:

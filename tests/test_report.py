@@ -156,7 +156,7 @@ def test_a_regenerated_report_keeps_its_hand_written_notes_once(tmp_path: Path) 
 
 
 def test_a_report_names_its_code_version_command_and_wall_time_in_one_line() -> None:
-    from agents.experiments.provenance import provenance, provenance_line
+    from estimator_service.provenance import provenance, provenance_line
 
     p = provenance(90.0, ["/somewhere/.venv/bin/gpbf", "reproduce", "--quick"])
     assert p["command"] == "gpbf reproduce --quick" and p["wall_s"] == 90.0
@@ -263,7 +263,7 @@ def test_a_command_run_as_python_m_is_recorded_as_one_that_runs(monkeypatch: pyt
     interpreter's, and no machine's path is recorded."""
     import sys
 
-    from agents.experiments.provenance import named_argv
+    from estimator_service.provenance import named_argv
 
     monkeypatch.setattr(
         sys, "orig_argv", ["/usr/bin/python3", "-X", "dev", "-m", "agents.experiments.rl", "--out", "x"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from agents.experiments.provenance import provenance_line
+from estimator_service.provenance import provenance_line
 
 __all__ = ["FILTERS", "KINDS", "SWEEP_FOLDER", "describe", "report_lines"]
 

@@ -18,13 +18,13 @@ from pathlib import Path
 from agents.experiments.gap_report import FILTERS, KINDS, describe
 from agents.experiments.measures import improvement
 from agents.experiments.parallel import check_jobs, run_all
-from agents.experiments.provenance import code_version, provenance
 from agents.experiments.reproduce import ReproduceSettings, split_folds, tracking
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
 from estimator_service.files import atomic_write_text, json_text
 from estimator_service.flight import Flight
 from estimator_service.progress import ProgressBar
+from estimator_service.provenance import code_version, provenance
 from estimator_service.tracking import mean_sd
 from estimator_service.training import train_models
 

@@ -10,10 +10,10 @@ import numpy as np
 
 from agents.experiments.fig5 import FIG5_STATES
 from agents.experiments.measures import aggregate_gain, improvement
-from agents.experiments.provenance import provenance_line
 from agents.experiments.report_notes import write_keeping_notes
 from agents.experiments.report_why import WHY
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
+from estimator_service.provenance import provenance_line
 from estimator_service.tracking import GROUPS, consistency_band, lost_angle_sd
 
 FIG3_FILE = "fig3_training_points.png"  # written by the reproduce run, shown by the report

@@ -22,7 +22,6 @@ import numpy as np
 from agents.experiments.fig5 import fig5
 from agents.experiments.landmark import table10
 from agents.experiments.parallel import check_jobs, run_all
-from agents.experiments.provenance import code_version, provenance
 from agents.experiments.report import FIG3_FILE, FIG4_FILE, FIG5_FILE
 from agents.experiments.resume import fold_scores_path, kept, resume_check, trained
 from agents.sim import collect_flight
@@ -33,6 +32,7 @@ from estimator_service.gp.linalg import single_threaded_blas
 from estimator_service.models.base import PredictionModel
 from estimator_service.models.calibration import read_noise_scales, read_observation_scales
 from estimator_service.progress import ProgressBar
+from estimator_service.provenance import code_version, provenance
 from estimator_service.tracking import (
     TrackResult,
     aggregate_rms,

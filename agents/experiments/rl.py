@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from agents.experiments.provenance import code_version, named_argv, provenance
 from agents.experiments.rl_schedule import CURVE_EPISODES, curve_freq
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
@@ -34,6 +33,7 @@ from estimator_service.cli import guarded
 from estimator_service.cli_args import Parser, checked_int
 from estimator_service.files import atomic_write_text, json_text
 from estimator_service.progress import ProgressBar
+from estimator_service.provenance import code_version, named_argv, provenance
 from estimator_service.training import TrainSettings, train_models
 
 __all__ = [

@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.experiments.provenance import provenance_line
 from agents.experiments.report_notes import write_keeping_notes
+from estimator_service.provenance import provenance_line
 
 __all__ = ["learning_curves", "write_report"]
 

@@ -27,12 +27,12 @@ from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback,
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor, VecNormalize
 
-from agents.experiments.provenance import named_argv
 from agents.rl.batched import BeliefVecEnv
 from agents.rl.hyperparams import Hyperparams, load_hyperparams
 from agents.rl.registry import TASK_ENVS, agent_env_id, episode_success
 from agents.rl.wrappers import VARIANTS, make_belief_env
 from estimator_service.files import atomic_write_text
+from estimator_service.provenance import named_argv
 
 __all__ = [
     "AgentPolicy",
@@ -162,7 +162,7 @@ def latest_checkpoint(folder: str | Path, companions: tuple[str, ...] = ()) -> t
 
 
 def _versions(code: str | None = None) -> dict[str, str]:
-    from agents.experiments.provenance import code_version
+    from estimator_service.provenance import code_version
 
     out = {"code": code or code_version(), "python": platform.python_version()}
     for name in _VERSIONED:

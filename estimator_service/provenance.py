@@ -11,7 +11,7 @@ from estimator_service.cli_args import package_version
 
 __all__ = ["code_version", "named_argv", "provenance", "provenance_line"]
 
-_ROOT = Path(__file__).resolve().parents[2]
+_ROOT = Path(__file__).resolve().parents[1]
 
 
 def code_version() -> str:
