@@ -161,7 +161,7 @@ class ProgressBar:
         text = f"{self.desc}: {self._count()} {self.unit}s"
         if self.total:
             frac, left = self._fraction(), self._eta(self._last)
-            eta = "?" if left is None else f"{left:.0f} s"
+            eta = f"after the first {self.unit}" if left is None else f"{left:.0f} s"
             text += f" ({100 * frac:.0f}%), {elapsed:.0f} s elapsed, ETA {eta}"
         else:
             text += f", {elapsed:.0f} s elapsed"

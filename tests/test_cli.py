@@ -261,6 +261,8 @@ def test_the_eta_counts_down_while_a_long_unit_runs(monkeypatch) -> None:
     monkeypatch.setattr(progress, "monotonic", lambda: clock[0])
     out = io.StringIO()
     with progress.ProgressBar("train", unit="part", stream=out, every_s=3600, weights=[1.0, 6.0, 3.0]) as bar:
+        clock[0] = 5.0
+        bar._line()  # no pace yet: says when there will be one (it said "ETA ?")
         clock[0] = 10.0
         bar.advance()  # 10 % in 10 s: the job looks like 100 s, the running part like 60 s
         for t in (10.0, 40.0, 70.0, 200.0):
@@ -272,7 +274,7 @@ def test_the_eta_counts_down_while_a_long_unit_runs(monkeypatch) -> None:
     etas = [line.rsplit("ETA ", 1)[1] for line in out.getvalue().splitlines()]
     # 90 s left; 30 s into the 60-s part, 60 s; past its estimate, the 30 s after it; then
     # 70 % in 210 s: 90 s left (and the closing line)
-    assert etas == ["90 s", "60 s", "30 s", "30 s", "90 s", "90 s"]
+    assert etas == ["after the first part", "90 s", "60 s", "30 s", "30 s", "90 s", "90 s"]
 
 
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
