@@ -293,3 +293,35 @@ def test_a_report_states_the_failure_rule_its_scores_were_made_with() -> None:
           "ukf/gp": _row(19.8, 1.1, 19.8, 1.1)}  # fmt: skip
     unnamed = _checks({"tracking": tr, "table5_6": {}, "settings": {}})
     assert f"- {dict(WHY)['the UKF improves over its Param']}" in unnamed
+
+
+def test_a_verdict_never_shows_its_two_sides_equal() -> None:
+    """A verdict's figures get more decimals until figures that differ read differently: the
+    lab report read 'x1.06 against x1.06 | yes' and the textbook one '95% of steps, at least
+    95% | no" (94.5 %)."""
+    from agents.experiments.report import _apart, _fig4_checks
+
+    assert _apart(1.0617, 1.0555) == ["1.062", "1.056"]
+    assert _apart(2.0, 2.0) == ["2.00", "2.00"] and _apart(1.5, 2.25, digits=1) == ["1.5", "2.2"]
+    f4 = {"no left turns: yaw std in left turns (deg)": 3.0, "full data: yaw std in left turns (deg)": 2.5,
+          "no left turns: yaw std elsewhere (deg)": 1.1, "full data: yaw std elsewhere (deg)": 1.0,
+          "no left turns: truth within 3 sigma in left turns": 0.9462}  # fmt: skip
+    (_, grow, _), (_, inside, held) = _fig4_checks(f4)
+    assert "94.6% of steps, at least 95%" in inside and not held, inside
+    assert "(x1.20, at least x1.2) more than elsewhere (x1.10)" in grow, grow  # equal figures read equal
+
+
+def test_the_pf_rows_say_they_are_scored_on_a_shorter_window() -> None:
+    """The PF tracks only the first ``pf_seconds`` of each segment: Table 8's three-filter
+    verdict and the PF rows say so (they ranked its 30 s against the UKF's 120 s unmarked)."""
+    from agents.experiments.report import _pf_window, _ukf_checks
+
+    assert _pf_window({"pf_seconds": 30.0, "track_seconds": 120.0}) == "first 30 s of each 120 s segment"
+    assert _pf_window({"pf_seconds": 120.0, "track_seconds": 120.0}) == ""
+    from estimator_service.tracking import GROUPS
+
+    row = {"mll": [1.0, 0.0], **{g: [1.0, 0.0] for g in GROUPS}}
+    tr = {f"{f}/{k}": row for f in ("ukf", "ekf", "pf") for k in ("param", "gp")}
+    (_, text, _), *_ = [c for c in _ukf_checks(tr, _pf_window({"pf_seconds": 30, "track_seconds": 120}))
+                        if c[0] == "table8_ukf_best"]  # fmt: skip
+    assert "the PF scored on the first 30 s of each 120 s segment only" in text, text
