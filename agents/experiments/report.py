@@ -628,7 +628,8 @@ def _why(failed: list[str], world: str) -> list[str]:
 WHY_MEASURED_IN = (
     "These causes were measured on earlier paper-size runs in the textbook world (its physics, "
     "with exact-state truth: `docs/results/reproduce_full` and `reproduce_full_seed1`, seeds 0 and 1); "
-    "every figure below comes from those runs, not from this report's."
+    "every figure and table named below is those runs', not this report's; where this report's own "
+    "tables differ, they decide."
 )
 WHY_ELSEWHERE = (
     "In the default lab world the parametric model lacks the simulator's structure, so the causes "
