@@ -128,8 +128,14 @@ def report(res: dict) -> str:
         f"counted as killed: {three(res['killed_ratio_with_tests_added'])}. Survivors explained: "
         f"{res['survivors_explained']}, unexplained: {res['survivors_unexplained']}.",
         "",
-        "Not run in full yet: " + (", ".join(f"`{m}`" for m in res["not_in_full"]) or "none") + " (the",
-        "sampled run in `sampled/` estimates them). Source changed since its run: "
+        "Not run in full yet: "
+        + (
+            ", ".join(f"`{m}`" for m in res["not_in_full"])
+            + " (the sampled run in `sampled/` estimates them)."
+            if res["not_in_full"]
+            else "none; `sampled/` holds an earlier sampled run over every module."
+        ),
+        "Source changed since its run: "
         + (", ".join(f"`{m}`" for m in res["source_changed_since_run"]) or "none")
         + ".",
         "",
