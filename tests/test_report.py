@@ -325,3 +325,18 @@ def test_the_pf_rows_say_they_are_scored_on_a_shorter_window() -> None:
     (_, text, _), *_ = [c for c in _ukf_checks(tr, _pf_window({"pf_seconds": 30, "track_seconds": 120}))
                         if c[0] == "table8_ukf_best"]  # fmt: skip
     assert "the PF scored on the first 30 s of each 120 s segment only" in text, text
+
+
+def test_the_committed_reproduce_reports_define_their_terms_and_fig5_units() -> None:
+    """An outside reader meets EGP, hetGP, ARD, NEES and NIS in every reproduce report: each
+    report defines them before its first table, and Fig. 5's figures carry their units."""
+    from agents.experiments.report import TERMS
+
+    for folder in sorted((Path(__file__).resolve().parents[1] / "docs" / "results").glob("reproduce_*")):
+        if not (folder / "results.json").is_file() or "reproduce_full" in folder.name:
+            continue  # the textbook-world runs before the lab physics keep their old report
+        text = (folder / "report.md").read_text()
+        assert TERMS in text and text.index(TERMS) < text.index("## Table 5"), folder.name
+        assert "v in m/s, p, q, r in rad/s" in text, folder.name
+    for term in ("EGP = ", "hetGP = ", "ARD (", "NEES = ", "NIS = ", "MLL = ", "sparse = "):
+        assert term in TERMS, term

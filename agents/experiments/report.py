@@ -640,10 +640,23 @@ WHY_ELSEWHERE = (
 )
 
 
+TERMS = (
+    "Terms: Param = the parametric models (the blimp's rigid-body dynamics and the cameras' "
+    "projection, coefficients fitted to the training data); GP = Gaussian process models, one per "
+    "output, with ARD (automatic relevance determination: one length scale per input); EGP = the "
+    "enhanced GP, a GP on the parametric model's residual; hetGP = the heteroscedastic GP, whose "
+    "noise varies with the input; sparse = the sparse GP (a few pseudo-inputs stand in for the "
+    "training points); EKF, UKF, PF = the extended and unscented Kalman filters and the particle "
+    "filter (the UKF's alpha: its sigma points' spread); NEES = the normalised estimation error "
+    "squared of the 12-D state, NIS = the normalised innovation squared of the camera readings; "
+    "MLL = the mean log-likelihood of the truth under the belief."
+)
+
+
 def _took(res: dict) -> str:
     if "wall_s" not in res:
         return ""
-    return f" The run took {res['wall_s'] / 60:.1f} minutes (when resumed: its last part)."
+    return f" The run took {res['wall_s'] / 60:.1f} minutes (a resumed run counts its last part only)."
 
 
 def rewrite(out: Path) -> Path:
@@ -680,6 +693,8 @@ def write_report(out: Path, res: dict) -> Path:
         "",
         f"World: `{world}`" + ("" if strength is None else f" at reality strength {strength}") + "; "
         "ground truth: the simulated 120 Hz motion capture (the paper's), exact-state scores at the end.",
+        "",
+        TERMS,
     ]
     lines += _table5(res) + _tables7_9(res) + _exact_table(res)
     if res.get("fig3"):
@@ -716,11 +731,14 @@ def write_report(out: Path, res: dict) -> Path:
             "",
             f"![fig5]({FIG5_FILE})",
             "",
+            "The figures below in the state's units: v in m/s, p, q, r in rad/s (body frame); a "
+            "variation is a coefficient of variation (standard deviation over mean, no unit).",
+            "",
         ]
         lines += [f"- {k}: {v:.4g}" for k, v in res["fig5"].items()] + [""]
     if res.get("table10"):
         lines += [
-            "## Table 10: synthetic landmark robot (position and velocity RMS)",
+            "## Table 10: synthetic landmark robot (position and velocity RMS, in its own units)",
             "",
             "Two training circuits (seeds) with six test runs each; `[toolbox]`: the paper's GP "
             "set-up (isotropic squared exponential on raw inputs, one GP per output).",
