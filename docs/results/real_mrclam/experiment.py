@@ -364,7 +364,9 @@ def report(r: dict) -> str:
         "noise from the training readings' residuals against the truth, process noise per step "
         "std = 0.1 |command| dt + (1 mm, 1 mm, 0.002 rad), fixed before any run. Dead reckoning: the "
         "unicycle on the commands from the true start.",
-        f"- Training took {r['train_seconds']} s ({r['train_seconds_per_kind']}).",
+        f"- Training took {r['train_seconds']} s ("
+        + ", ".join(f"{k} {v} s" for k, v in r["train_seconds_per_kind"].items())
+        + ").",
         "",
         "Measures (held-out part): position RMS per axis, heading RMS, NEES / 3 (1 for a consistent "
         "belief), the mean log-likelihood of the truth under the belief (higher is better; rewards "
