@@ -184,6 +184,7 @@ def _tables7_9(res: dict) -> list[str]:
     tr = res["tracking"]
     filters = sorted({k.split("/")[0] for k in tr}, key=("ukf", "ekf", "pf").index)
     kinds = [k for k in ("param", "gp", "egp", "hetgp", "sparse") if f"{filters[0]}/{k}" in tr]
+    pf_window = _pf_window(res["settings"])
     lines = [
         "## Tables 7-9: tracking (held-out folds)",
         "",
@@ -206,18 +207,14 @@ def _tables7_9(res: dict) -> list[str]:
         "adapt their process noise to the innovations (adapt_rate 0.5, beyond the paper). A run counts as "
         "failed " + _failure_rule(tr) + "; the paper: when the truth leaves the 3-sigma bounds, the "
         "filter having lost track."
-        + (
-            f" The PF rows are scored on the {_pf_window(res['settings'])} only."
-            if _pf_window(res["settings"])
-            else ""
-        ),
+        + (f" The PF rows are scored on the {pf_window} only." if pf_window else ""),
         "",
         "| filter | model | p | ξ | v | ω | improvement | aggregate RMS | MLL | step (ms) | NEES | NIS/dof "
         "| failed runs |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     pf_s = res["settings"].get("pf_seconds")
-    pf_label = f"PF (first {pf_s:g} s)" if _pf_window(res["settings"]) else "PF"
+    pf_label = f"PF (first {pf_s:g} s)" if pf_window else "PF"
     for f in filters:
         for k in kinds:
             v = tr[f"{f}/{k}"]

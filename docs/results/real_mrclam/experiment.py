@@ -201,7 +201,7 @@ def run(out: Path, quick: bool, reuse: bool = False) -> dict:
         t0 = time.perf_counter()
         timings = train_models([train], models, kinds=kinds, settings=settings)
         train_s = time.perf_counter() - t0
-        timing_file.write_text(json.dumps({**timings, "total": train_s}))
+        atomic_write_text(timing_file, json.dumps({**timings, "total": train_s}))
     print("trained", round(train_s, 1), json.dumps(calibration_choices(models)), flush=True)
     rows, results = {}, {}
     for kind in kinds:
