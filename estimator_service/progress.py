@@ -45,11 +45,17 @@ class ProgressBar:
         Each unit's estimated cost (positive, any scale; e.g.
         :func:`estimator_service.work.part_weights`): the share done and the ETA are the
         weight of the units done over the whole weight. The total is then ``len(weights)``.
+    done
+        With ``weights``: the indices of units already done before this job started (a
+        resumed run's kept work). They count as done from the start, do not set the pace of
+        the ETA (their cost is not this job's), and a later ``advance(index=...)`` of one of
+        them changes nothing.
     """
 
     def __init__(
         self, desc: str, total: int | None = None, *, unit: str = "step", enabled: bool = True,
         stream: TextIO | None = None, every_s: float = 10.0, weights: Sequence[float] | None = None,
+        done: Sequence[int] = (),
     ) -> None:  # fmt: skip
         if not (math.isfinite(every_s) and every_s > 0):
             raise ValueError(f"every_s must be a positive number of seconds, got {every_s!r}")
@@ -58,8 +64,11 @@ class ProgressBar:
             if total is not None and total != len(weights):
                 raise ValueError(f"total {total} differs from the {len(weights)} weights")
             total = len(weights)
-        self.desc, self.total, self.unit, self.n = desc, total, unit, 0
-        self._weight_done = 0.0  # with weights: the weight of the units done
+        self.desc, self.total, self.unit = desc, total, unit
+        self._units_done = self._kept_units(done)  # with weights: the indices of the units done
+        self.n = len(self._units_done)
+        # with weights: the weight of the units done, and of those done before this job began
+        self._weight_done = self._weight_kept = sum(self._unit_weight(i) for i in self._units_done)
         self._stream = stream or sys.stderr
         self._enabled, self._every = enabled, every_s
         self._t0 = self._last = self._t_done = monotonic()  # _t_done: when the share last grew
@@ -72,10 +81,23 @@ class ProgressBar:
             if self._cum is None:
                 self._bar = tqdm(total=total, desc=desc, unit=unit, file=self._stream, dynamic_ncols=True)
             else:  # the bar's length and rate in weight: the count of units goes in the postfix
+                kept = round(WEIGHT_STEPS * self._fraction())  # tqdm's rate leaves out its initial
                 self._bar = tqdm(total=WEIGHT_STEPS, desc=desc, file=self._stream, dynamic_ncols=True,
-                                 bar_format=WEIGHTED_FORMAT)  # fmt: skip
+                                 bar_format=WEIGHTED_FORMAT, initial=kept)  # fmt: skip
         elif enabled:
             threading.Thread(target=self._heartbeat, name=f"progress {desc}", daemon=True).start()
+
+    def _kept_units(self, done: Sequence[int]) -> set[int]:
+        """``done`` checked: only with weights, each index one of the units."""
+        if len(done) and self._cum is None:
+            raise ValueError("done needs weights: the units done are indices into them")
+        bad = [i for i in done if not (isinstance(i, int | np.integer) and 0 <= i < len(self._cum) - 1)]
+        if bad:
+            raise ValueError(f"done: {bad} not among the {len(self._cum) - 1} weighted units")
+        return {int(i) for i in done}
+
+    def _unit_weight(self, index: int) -> float:
+        return float(self._cum[index + 1] - self._cum[index])
 
     def _heartbeat(self) -> None:
         """A plain line whenever ``every_s`` passed without one, until the job ends."""
@@ -124,7 +146,10 @@ class ProgressBar:
         if not 0 <= index < len(self._cum) - 1:
             raise ValueError(f"index {index} is not one of the {len(self._cum) - 1} weighted units")
         self._postfix = postfix or self._postfix
-        self._weight_done += float(self._cum[index + 1] - self._cum[index])
+        if index in self._units_done:  # counted already (kept from before this job)
+            return
+        self._units_done.add(index)
+        self._weight_done += self._unit_weight(index)
         self._show(self.n + 1, postfix)
 
     def _count(self) -> str:
@@ -145,15 +170,17 @@ class ProgressBar:
         return float(self._cum[self.n + 1] - self._cum[self.n]) / float(self._cum[-1])
 
     def _eta(self, now: float) -> float | None:
-        """Seconds left: the share left at the pace of the share done (up to when it last
-        grew), less the time the running unit has taken, at most its own estimate, so the
-        ETA counts down while a long unit runs instead of growing with the elapsed time."""
+        """Seconds left: the share left at the pace of the share this job did (up to when it
+        last grew; units kept from before it are not its pace), less the time the running
+        unit has taken, at most its own estimate, so the ETA counts down while a long unit
+        runs instead of growing with the elapsed time."""
         frac = self._fraction()
-        if frac <= 0:
-            return None
-        whole = (self._t_done - self._t0) / frac  # the job's seconds at the pace so far
-        running = min(now - self._t_done, whole * self._next_share())
-        return max(0.0, whole * (1 - frac) - running)
+        worked = frac - (self._weight_kept / float(self._cum[-1]) if self._cum is not None else 0.0)
+        if worked <= 0:
+            return None if frac < 1 else 0.0
+        per_share = (self._t_done - self._t0) / worked  # seconds per share at the pace so far
+        running = min(now - self._t_done, per_share * self._next_share())
+        return max(0.0, per_share * (1 - frac) - running)
 
     def _line(self) -> None:
         self._last = monotonic()

@@ -277,6 +277,37 @@ def test_the_eta_counts_down_while_a_long_unit_runs(monkeypatch) -> None:
     assert etas == ["after the first part", "90 s", "60 s", "30 s", "30 s", "90 s", "90 s"]
 
 
+def test_a_resumed_jobs_kept_units_count_as_done_but_do_not_set_the_eta(monkeypatch) -> None:
+    """Units a resumed run keeps (read back in a second) are done from the start and are not
+    the pace of the work left: the ETA waits for a unit of this job (it took the kept agents'
+    seconds as the pace of training and said 25 min where 80 were left)."""
+    import io
+
+    import estimator_service.progress as progress
+
+    clock = [0.0]
+    monkeypatch.setattr(progress, "monotonic", lambda: clock[0])
+    out = io.StringIO()
+    weights = [1.0, 1.0, 4.0, 4.0]
+    with progress.ProgressBar(
+        "run", unit="unit", stream=out, every_s=3600, weights=weights, done=[0, 1]
+    ) as bar:
+        clock[0] = 3.0
+        bar.advance(index=0)  # a kept unit's worker ends: counted already
+        bar.advance(index=1)
+        bar._line()
+        clock[0] = 40.0
+        bar.advance(index=2)  # 40 % of the weight in 40 s: 40 s left for the last 40 %
+        bar._line()
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "run: 2/4 units (20%), 3 s elapsed, ETA after the first unit"
+    assert lines[1] == "run: 3/4 units (60%), 40 s elapsed, ETA 40 s"
+    with pytest.raises(ValueError, match="done needs weights"):
+        progress.ProgressBar("x", 3, done=[0], enabled=False)
+    with pytest.raises(ValueError, match=r"done: \[2\] not among the 2 weighted units"):
+        progress.ProgressBar("x", weights=[1.0, 1.0], done=[0, 2], enabled=False)
+
+
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
     import io
 

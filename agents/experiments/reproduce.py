@@ -307,7 +307,8 @@ def reproduce(out: Path, s: ReproduceSettings, progress: bool = True, jobs: int 
     fig3 = _fig3_runs(folds[0], s, out)
     units += [*fig3, partial(train_no_left_turns, out, folds[0][0], s), partial(table10_unit, out, s)]
     weights = _unit_seconds(out, folds, fig3, s)
-    with ProgressBar("reproduce", unit="unit", enabled=progress, weights=weights) as bar:
+    kept = [i for i, w in enumerate(weights) if w == KEPT_S]  # kept whole from an earlier run
+    with ProgressBar("reproduce", unit="unit", enabled=progress, weights=weights, done=kept) as bar:
         done = run_all(units, jobs, lambda i: bar.advance(index=i))
     fold_scores, t10 = done[: len(folds)], done[-1]
     results = {
