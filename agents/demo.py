@@ -35,8 +35,8 @@ from estimator_service.plots import continuous, save_figure
 from estimator_service.progress import ProgressBar
 from estimator_service.service.client import EstimatorClient, free_port, open_session, services, spawn_service
 from estimator_service.tracking import group_rms
-from estimator_service.training import TrainSettings, train_models
-from estimator_service.work import part_weights
+from estimator_service.training import TrainSettings
+from estimator_service.work import train_with_progress
 from gpbf_env.camera import euler_to_matrix, outline_ellipses
 from gpbf_env.imaging import fit_ellipse_image, render_frame
 
@@ -212,14 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     models = args.out / "models"
     kinds = ("param", "egp")
     settings = TrainSettings(n_points=args.points, n_pseudo=30, restarts=1, max_iter=40)
-    bar = ProgressBar("train models", unit="part", weights=part_weights([flight], kinds, settings))
-
-    def progress(kind: str, p) -> None:
-        if p is None:
-            bar.advance(postfix=f"{kind} done")
-
-    with bar:
-        train_models([flight], models, kinds=kinds, settings=settings, seed=args.seed, on_progress=progress)
+    train_with_progress("train models", [flight], models, kinds=kinds, settings=settings, seed=args.seed)
     # 3. the estimator as a separate process, fed through the bridge
     port = free_port()
     proc, ready = spawn_service(models, port, "--filter", "ukf", "--model", "egp")

@@ -89,8 +89,8 @@ def add_log_options(p: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from estimator_service.training import TrainSettings, available_kinds, train_models
-    from estimator_service.work import part_weights
+    from estimator_service.training import TrainSettings, available_kinds
+    from estimator_service.work import train_with_progress
 
     flights = [_read_log(p, args) for p in args.logs]
     settings = TrainSettings(
@@ -102,24 +102,9 @@ def run_train(args: argparse.Namespace) -> int:
     kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else list(avail)
     if "param" in avail and "param" not in kinds:
         kinds.insert(0, "param")
-    weights = part_weights(flights, kinds, settings)  # each part's estimated seconds, for the ETA
-    bar = ProgressBar("train", unit="part", enabled=not args.quiet, weights=weights)
-    iterations = {"n": 0}
-
-    def progress(kind: str, p) -> None:
-        if p is None:  # one part of the work (a fit, a fold's calibration of a kind, a choice) done
-            bar.advance(1, postfix=f"{kind} done")
-            return
-        iterations["n"] += 1
-        if iterations["n"] % 25 == 0:
-            bar.update_to(
-                bar.n, postfix=f"{kind}: output {p.output}, restart {p.restart}, nll {p.objective:.4g}"
-            )
-
-    with bar:
-        timings = train_models(
-            flights, args.out, kinds=kinds, settings=settings, seed=args.seed, on_progress=progress
-        )
+    timings = train_with_progress(
+        "train", flights, args.out, kinds=kinds, settings=settings, seed=args.seed, enabled=not args.quiet
+    )
     from estimator_service.models.calibration import calibration_choices
 
     seconds = {k: round(v, 1) for k, v in timings.items()}

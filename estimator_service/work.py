@@ -14,15 +14,17 @@ their ratios matter to a display.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 from estimator_service.crossfit import calibration_folds
 from estimator_service.factory import ENHANCED_KINDS, observation_parts
 from estimator_service.flight import Flight
 from estimator_service.gp.inverse import BLOCKS
 from estimator_service.matching import LIKELIHOOD_FACTORS, PROCESS_FACTORS, REFINE_FACTORS
-from estimator_service.training import TrainSettings
+from estimator_service.progress import ProgressBar
+from estimator_service.training import TrainSettings, train_models
 
-__all__ = ["fit_seconds", "part_weights", "track_seconds"]
+__all__ = ["fit_seconds", "part_weights", "track_seconds", "train_with_progress"]
 
 # Measured on the README's 20-minute flight with the default settings (2-core AMD EPYC,
 # 2026-12-05; docs/measurements.md#progress-weights):
@@ -146,3 +148,32 @@ def part_weights(flights: Sequence[Flight], kinds: Sequence[str], s: TrainSettin
     for k in kinds:
         weights += _choice_seconds(flights, k, s, steps)
     return weights
+
+
+#: optimiser iterations between two status texts of :func:`train_with_progress`
+STATUS_EVERY_ITERATIONS = 25
+
+
+def train_with_progress(
+    desc: str, flights: Sequence[Flight], out: str | Path, *, kinds: Sequence[str],
+    settings: TrainSettings, seed: int = 0, enabled: bool = True,
+) -> dict[str, float]:  # fmt: skip
+    """:func:`~estimator_service.training.train_models` with a progress display ``desc``
+    weighted by :func:`part_weights` (every part counted: the fits, the calibration's folds,
+    the noise choices; 100 % when the models are saved) and the optimiser's status now and
+    then, so a log is never silent while models train. Returns training seconds per kind."""
+    bar = ProgressBar(desc, unit="part", enabled=enabled, weights=part_weights(flights, kinds, settings))
+    iterations = [0]
+
+    def progress(kind: str, p) -> None:
+        if p is None:  # one part of the work done
+            bar.advance(1, postfix=f"{kind} done")
+            return
+        iterations[0] += 1
+        if iterations[0] % STATUS_EVERY_ITERATIONS == 0:
+            bar.update_to(
+                bar.n, postfix=f"{kind}: output {p.output}, restart {p.restart}, nll {p.objective:.4g}"
+            )
+
+    with bar:
+        return train_models(flights, out, kinds=kinds, settings=settings, seed=seed, on_progress=progress)

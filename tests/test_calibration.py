@@ -589,3 +589,20 @@ def test_training_progress_counts_every_phase_to_its_total(tmp_path, refit) -> N
     weights = part_weights([flight], ["param", "gp"], s)  # one estimated cost per part, in order
     assert len(weights) == len(done) and all(w > 0 for w in weights)
     assert len(part_weights([flight], ["param", "gp"], dataclasses.replace(s, calibration_seconds=0))) == 1
+
+
+def test_training_with_progress_ends_at_100_percent_of_every_part(tmp_path, capsys) -> None:
+    """The one training-with-progress helper (the ``train`` command, the demo, the RL
+    experiment's belief models; the RL experiment trained its models in silence for
+    minutes): its closing line counts every part ``part_weights`` weighs, at 100 %."""
+    from estimator_service.work import train_with_progress
+
+    flight = collect_flight(60, seed=8)
+    s = TrainSettings(n_points=30, restarts=1, max_iter=2, calibration_seconds=10, calibration_folds=2)
+    seconds = train_with_progress("belief models", [flight], tmp_path, kinds=["param", "gp"], settings=s)
+    parts = len(part_weights([flight], ["param", "gp"], s))
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"belief models: {parts}/{parts} parts (100%)"), last
+    assert {"param", "gp"} <= set(seconds) and (tmp_path / "prediction_gp.npz").exists()
+    train_with_progress("quiet", [flight], tmp_path / "q", kinds=["param"], settings=s, enabled=False)
+    assert capsys.readouterr().err == ""

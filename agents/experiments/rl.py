@@ -34,7 +34,8 @@ from estimator_service.cli_args import Parser, checked_int
 from estimator_service.files import atomic_write_text, json_text
 from estimator_service.progress import ProgressBar
 from estimator_service.provenance import code_version, named_argv, provenance
-from estimator_service.training import TrainSettings, train_models
+from estimator_service.training import TrainSettings
+from estimator_service.work import train_with_progress
 
 __all__ = [
     "RLSettings",
@@ -108,8 +109,9 @@ def _models(out: Path, cfg: RLSettings) -> Path:
     models = out / "models"
     if not (models / "parametric.npz").exists() or not (models / f"prediction_{cfg.model}.npz").exists():
         flight = collect_flight(600, seed=123)
-        train_models(
-            [flight], models, kinds=sorted({"param", cfg.model}), settings=TrainSettings(n_points=cfg.points)
+        kinds = sorted({"param", cfg.model})
+        train_with_progress(
+            "train belief models", [flight], models, kinds=kinds, settings=TrainSettings(n_points=cfg.points)
         )
     return models
 
