@@ -596,9 +596,13 @@ def test_a_run_records_its_command_and_resumes_from_its_newest_checkpoint(models
 
 
 @pytest.mark.slow
-def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.CaptureFixture[str]) -> None:
-    """The command the published SAC report prints for one agent (``gpbf eval-agent ...
-    --episodes 100 --seed 5000``) returns that agent's recorded figures: the committed files
+@pytest.mark.parametrize("folder", ["sac_hover", "rl"])
+def test_a_published_agent_gives_the_figures_its_report_prints(
+    folder: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The command a published report (SAC; PPO, whose hover agents carry their
+    observation normaliser) prints for one agent (``gpbf eval-agent ... --episodes 100
+    --seed 5000``) returns that agent's recorded figures: the committed files
     still load and fly as they did (a change to the simulator or the observations fails here
     until the agents are trained again). Equal to the last digit on the machine that trained
     them; another CPU's rounding may move single episodes, so the mean return is held to
@@ -608,7 +612,7 @@ def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.Ca
     from agents.cli import main as gpbf_main
 
     root = Path(__file__).resolve().parents[1]
-    report = (root / "docs" / "results" / "sac_hover" / "report.md").read_text()
+    report = (root / "docs" / "results" / folder / "report.md").read_text()
     cmd = next(ln for ln in report.splitlines() if ln.startswith("| hover-state-1 |")).split("`")[1].split()
     assert cmd[:2] == ["gpbf", "eval-agent"] and cmd[3:] == ["--episodes", "100", "--seed", "5000"]
     model = root / cmd[2]
@@ -617,4 +621,4 @@ def test_a_published_agent_gives_the_figures_its_report_prints(capsys: pytest.Ca
     res = json.loads(capsys.readouterr().out)
     saved = json.loads((model.parent / "result.json").read_text())
     assert abs(res["mean_return"] - saved["mean_return"]) <= 3 * saved["std_return"] / 10, (res, saved)
-    assert abs(res["success_rate"] - saved["success_rate"]) <= 0.05 and saved["success_rate"] == 0.99
+    assert abs(res["success_rate"] - saved["success_rate"]) <= 0.05 and saved["success_rate"] >= 0.9

@@ -22,7 +22,8 @@ from estimator_service.factory import build_filter
 from estimator_service.files import atomic_write_text, json_text
 from estimator_service.flight import Flight
 from estimator_service.tracking import GROUPS, score, track_flight
-from estimator_service.training import TrainSettings, train_models
+from estimator_service.training import TrainSettings
+from estimator_service.work import train_with_progress
 
 __all__ = ["agent_data_lines", "agent_data_loop"]
 
@@ -63,7 +64,9 @@ def agent_data_loop(
     for name, flights in (("scripted", [scripted]), ("scripted+agent", [scripted, flown])):
         folder = out / "agent_data" / name
         if not (folder / "prediction_gp.npz").exists():
-            train_models(flights, folder, kinds=["param", "gp"], settings=settings)
+            train_with_progress(
+                f"agent data: {name} models", flights, folder, kinds=["param", "gp"], settings=settings
+            )
         table[name] = {kind: track_episodes(folder, kind, heldout) for kind in ("gp", "param")}
     data = {
         "agent": _label(agent, out),
