@@ -164,7 +164,7 @@ def run(out: Path, cfg: RLSettings) -> dict[str, Any]:
     with ProcessPoolExecutor(max_workers=max(1, cfg.jobs), mp_context=ctx) as pool:
         record = (named_argv(), code)
         futures = {pool.submit(_job, *k, models, out, cfg, record): i for i, k in enumerate(todo)}
-        kept = [i for i, k in enumerate(todo) if _result(out, *k).exists()]
+        kept = [i for i, w in enumerate(weights) if w == KEPT_AGENT_COST]  # trained before this run
         with ProgressBar("train agents", unit="agent", weights=weights, done=kept) as bar:
             for fut in as_completed(futures):
                 bar.advance(index=futures[fut])
