@@ -128,7 +128,8 @@ def _train(args: argparse.Namespace, spec: AgentSpec) -> Path:
 def _eval_agent(args: argparse.Namespace) -> int:
     from agents.rl import evaluate_agent
 
-    with ProgressBar("evaluate", args.episodes, unit="episode", enabled=not args.quiet) as bar:
+    bar = ProgressBar("evaluate", args.episodes, unit="episode", enabled=not args.quiet)
+    with _threads(args.threads), bar:
         result = evaluate_agent(
             args.agent, episodes=args.episodes, seed=args.seed, on_episode=bar.update_to, models=args.models
         )
@@ -292,14 +293,17 @@ def _add_train_agent(sub) -> None:
         "--eval-episodes", type=checked_int(1, 10_000), default=5, help="episodes of the final evaluation"
     )
     a.add_argument("--seed", type=seed, default=0, help="seed of the agent and the envs")
-    a.add_argument(
-        "--threads", type=checked_int(1, 256), default=None,
-        help="torch and BLAS threads (default: the libraries'); the agent depends on it: the RL "
-             "experiment trains each agent on 1",
-    )  # fmt: skip
+    _add_threads(a, "the agent depends on it: the RL experiment trains each agent on 1")
     a.add_argument("--out", type=Path, default=Path("out/agent"), help="output folder")
     add_quiet(a)
     a.set_defaults(func=_train_agent)
+
+
+def _add_threads(parser: argparse.ArgumentParser, why: str) -> None:
+    parser.add_argument(
+        "--threads", type=checked_int(1, 256), default=None,
+        help=f"torch and BLAS threads (default: the libraries'); {why}",
+    )  # fmt: skip
 
 
 def _add_eval_agent(sub) -> None:
@@ -309,6 +313,9 @@ def _add_eval_agent(sub) -> None:
     e.add_argument("--seed", type=seed, default=1000, help="seed of the first episode")
     e.add_argument(
         "--models", type=Path, default=None, help="model folder (default: the one the agent names)"
+    )
+    _add_threads(
+        e, "belief agents' returns depend on it in the last digits; the RL experiment evaluates on 1"
     )
     add_quiet(e)
     e.set_defaults(func=_eval_agent)

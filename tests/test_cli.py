@@ -41,6 +41,7 @@ def _fails(capsys, argv: list[str], main=gpbf, needle: str = "") -> str:
         (["train-agent", "--timesteps", "0"], "--timesteps"),
         (["train-agent", "--threads", "0"], "--threads"),
         (["eval-agent", "a.zip", "--episodes", "0"], "--episodes"),
+        (["eval-agent", "a.zip", "--threads", "300"], "argument --threads: must be in"),
         (["reproduce", "--jobs", "0"], "--jobs"),
         (["gap-sweep", "--jobs", "65"], "--jobs"),
         (["serve", "--models", "m", "--workers", "0"], "--workers"),
