@@ -108,11 +108,13 @@ def phases(models: Path, n: int) -> dict[str, float]:
 
 
 def factor_mb(models: Path, kind: str = "gp") -> float:
-    """MB of Cholesky factors one step reads (lower triangles of every stored factor)."""
+    """MB of Cholesky factors one step reads (lower triangles of every exact GP's ``P`` factors
+    of ``n x n``, factored on load: its ``alpha`` of ``(P, n)`` gives the sizes)."""
     total = 0
     for path in models.glob(f"*_{kind}*.npz"):
         with np.load(path) as f:
-            total += sum(f[k].nbytes // 2 for k in f.files if k.endswith("chol_t"))
+            shapes = [f[k].shape for k in f.files if k.endswith("alpha")]
+        total += sum(p * n * n * 8 // 2 for p, n in shapes)
     return total / 2**20
 
 

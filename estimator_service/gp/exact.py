@@ -24,7 +24,7 @@ from estimator_service.gp.linalg import chol_solve, inverse_factor, robust_chole
 from estimator_service.gp.parallel import over_outputs
 from estimator_service.reprs import short_repr
 
-__all__ = ["ExactGP", "fit_exact", "unscale"]
+__all__ = ["ExactGP", "cholesky_factors", "fit_exact", "unscale"]
 
 FloatArray = NDArray[np.float64]
 #: more queries than this, a prediction with variances goes output by output over threads
@@ -100,17 +100,8 @@ class ExactGP:
         noise_profile: FloatArray | None = None,
     ) -> ExactGP:  # fmt: skip
         """Posterior for standardised data ``x (n, d)``, ``y (n, P)`` and ``theta (P, d+2)``."""
-        n, p_out = y.shape
-        chol_t = np.empty((p_out, n, n))
-        alpha = np.empty((p_out, n))
-        prof = np.ones((p_out, n)) if noise_profile is None else noise_profile
-        for p in range(p_out):  # training-time only
-            ell, sf2, sn2 = split_theta(theta[p])
-            k = se_kernel(x, x, ell, sf2)
-            k[np.diag_indices_from(k)] += sn2 * prof[p]
-            l, _ = robust_cholesky(k)
-            chol_t[p] = l.T
-            alpha[p] = chol_solve(l, y[:, p])
+        chol_t = cholesky_factors(x, theta, noise_profile)
+        alpha = np.stack([chol_solve(chol_t[p].T, y[:, p]) for p in range(y.shape[1])])
         return cls(x_scaler, y_scaler, np.asarray(theta, dtype=np.float64), x, chol_t, alpha, noise_profile)
 
     def conditioned(self, x: FloatArray, y: FloatArray) -> ExactGP:
@@ -213,6 +204,29 @@ class ExactGP:
         if var is not None and include_noise:
             var = var + self.noise_var_standardised(xs)
         return unscale(self.x_scaler, self.y_scaler, mean, var, jac)
+
+
+def cholesky_factors(x: FloatArray, theta: FloatArray, noise_profile: FloatArray | None = None) -> FloatArray:
+    """Transposed lower Cholesky factors of ``K + noise`` per output: ``chol_t (P, n, n)``
+    for standardised inputs ``x (n, d)``, ``theta (P, d + 2)`` and the relative per-point
+    noise ``noise_profile (P, n)`` (None: homoscedastic).
+
+    Factored on one BLAS thread, so the factors are the same bits whatever thread count the
+    caller runs with (a multi-threaded ``potrf`` rounds differently): a model file keeps
+    ``alpha`` but not these factors, and a loaded GP predicts exactly as the fitted one.
+    """
+    from threadpoolctl import threadpool_limits
+
+    n, p_out = x.shape[0], theta.shape[0]
+    chol_t = np.empty((p_out, n, n))
+    prof = np.ones((p_out, n)) if noise_profile is None else noise_profile
+    with threadpool_limits(1):
+        for p in range(p_out):  # training or load time only
+            ell, sf2, sn2 = split_theta(theta[p])
+            k = se_kernel(x, x, ell, sf2)
+            k[np.diag_indices_from(k)] += sn2 * prof[p]
+            chol_t[p] = robust_cholesky(k)[0].T
+    return chol_t
 
 
 def unscale(

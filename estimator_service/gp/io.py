@@ -5,7 +5,9 @@ Layout: ``__format__`` (int, :data:`FORMAT_VERSION`), ``__kind__`` (``exact``, `
 ``main/``, ``noise/``; enhanced: ``residual/``; circular: ``inner/``) use key prefixes.
 Files are written to a temporary name in the same folder and renamed, so a crash never
 leaves a half-written model. An enhanced GP's parametric mean function is code, not data:
-pass it to :func:`load_gp`.
+pass it to :func:`load_gp`. An exact GP's Cholesky factors (``P n^2`` numbers, most of the
+file) are not saved but factored again on load (:func:`~estimator_service.gp.exact.cholesky_factors`,
+the same bits as the fit's); files that hold them (``chol_t``) still load.
 """
 
 from __future__ import annotations
@@ -18,11 +20,11 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from estimator_service.files import atomic_savez, npz_oversized, npz_unreadable
+from estimator_service.files import MAX_ARRAY_BYTES, atomic_savez, npz_oversized, npz_unreadable
 from estimator_service.gp.base import GPModel, Scaler
 from estimator_service.gp.circular import CircularGP
 from estimator_service.gp.enhanced import EnhancedGP, JacobianFunction, MeanFunction
-from estimator_service.gp.exact import ExactGP
+from estimator_service.gp.exact import ExactGP, cholesky_factors
 from estimator_service.gp.hetero import HeteroscedasticGP
 from estimator_service.gp.sparse import SparseGP
 
@@ -49,7 +51,7 @@ def _to_arrays(model: GPModel, prefix: str = "") -> Arrays:
     out: Arrays = {f"{prefix}__kind__": np.array(model.kind)}
     if isinstance(model, ExactGP):
         out |= _scaler_arrays(prefix, model.x_scaler, model.y_scaler)
-        out |= {f"{prefix}{k}": getattr(model, k) for k in ("theta", "x_train", "chol_t", "alpha")}
+        out |= {f"{prefix}{k}": getattr(model, k) for k in ("theta", "x_train", "alpha")}
         if model.noise_profile is not None:
             out[f"{prefix}noise_profile"] = model.noise_profile
     elif isinstance(model, SparseGP):
@@ -116,20 +118,7 @@ def _from_arrays(data: Arrays, prefix: str, where: str, code: _Code = _NO_CODE) 
         raise ModelFileError(f"{where}: missing '{kind_key}' (not a gpbf GP file?)")
     kind = str(data[kind_key])
     if kind == "exact":
-        theta = _get(data, f"{prefix}theta", 2, where)
-        x = _get(data, f"{prefix}x_train", 2, where)
-        chol = _get(data, f"{prefix}chol_t", 3, where)
-        alpha = _get(data, f"{prefix}alpha", 2, where)
-        p, n, d = theta.shape[0], x.shape[0], x.shape[1]
-        _expect(theta.shape == (p, d + 2), where, f"theta {theta.shape} vs x_train {x.shape}")
-        _expect(chol.shape == (p, n, n), where, f"chol_t {chol.shape}, expected {(p, n, n)}")
-        _expect(alpha.shape == (p, n), where, f"alpha {alpha.shape}, expected {(p, n)}")
-        prof = None
-        if f"{prefix}noise_profile" in data:
-            prof = _get(data, f"{prefix}noise_profile", 2, where)
-            _expect(prof.shape == (p, n), where, f"noise_profile {prof.shape}, expected {(p, n)}")
-        xs, ys = _scalers(data, prefix, where, d, p)
-        return ExactGP(xs, ys, theta, x, chol, alpha, prof)
+        return _exact(data, prefix, where)
     if kind == "sparse":
         theta = _get(data, f"{prefix}theta", 2, where)
         z = _get(data, f"{prefix}pseudo_inputs", 3, where)
@@ -156,6 +145,31 @@ def _from_arrays(data: Arrays, prefix: str, where: str, code: _Code = _NO_CODE) 
     if kind == "circular":
         return _circular(data, prefix, where, code)
     raise ModelFileError(f"{where}: unknown model kind {kind!r}")
+
+
+def _exact(data: Arrays, prefix: str, where: str) -> ExactGP:
+    theta = _get(data, f"{prefix}theta", 2, where)
+    x = _get(data, f"{prefix}x_train", 2, where)
+    alpha = _get(data, f"{prefix}alpha", 2, where)
+    p, n, d = theta.shape[0], x.shape[0], x.shape[1]
+    _expect(theta.shape == (p, d + 2), where, f"theta {theta.shape} vs x_train {x.shape}")
+    _expect(alpha.shape == (p, n), where, f"alpha {alpha.shape}, expected {(p, n)}")
+    prof = None
+    if f"{prefix}noise_profile" in data:
+        prof = _get(data, f"{prefix}noise_profile", 2, where)
+        _expect(prof.shape == (p, n), where, f"noise_profile {prof.shape}, expected {(p, n)}")
+    xs, ys = _scalers(data, prefix, where, d, p)
+    if f"{prefix}chol_t" in data:  # files written before the factors were left out
+        chol = _get(data, f"{prefix}chol_t", 3, where)
+        _expect(chol.shape == (p, n, n), where, f"chol_t {chol.shape}, expected {(p, n, n)}")
+    else:
+        if p * n * n * 8 > MAX_ARRAY_BYTES:
+            raise ModelFileError(
+                f"{where}: {p} outputs of {n} training points need {p * n * n * 8} bytes of "
+                f"Cholesky factors, more than {MAX_ARRAY_BYTES} (a damaged or hostile file)"
+            )
+        chol = cholesky_factors(x, theta, prof)
+    return ExactGP(xs, ys, theta, x, chol, alpha, prof)
 
 
 def _enhanced(data: Arrays, prefix: str, where: str, code: _Code) -> EnhancedGP:
