@@ -602,7 +602,7 @@ def test_a_published_agent_gives_the_figures_its_report_prints(
 ) -> None:
     """The command a published report (SAC; PPO, whose hover agents carry their
     observation normaliser) prints for one agent (``gpbf eval-agent ... --episodes 100
-    --seed 5000``) returns that agent's recorded figures: the committed files
+    --seed 5000 --threads 1``) returns that agent's recorded figures: the committed files
     still load and fly as they did (a change to the simulator or the observations fails here
     until the agents are trained again). Equal to the last digit on the machine that trained
     them; another CPU's rounding may move single episodes, so the mean return is held to
@@ -614,7 +614,8 @@ def test_a_published_agent_gives_the_figures_its_report_prints(
     root = Path(__file__).resolve().parents[1]
     report = (root / "docs" / "results" / folder / "report.md").read_text()
     cmd = next(ln for ln in report.splitlines() if ln.startswith("| hover-state-1 |")).split("`")[1].split()
-    assert cmd[:2] == ["gpbf", "eval-agent"] and cmd[3:] == ["--episodes", "100", "--seed", "5000"]
+    assert cmd[:2] == ["gpbf", "eval-agent"]
+    assert cmd[3:] == ["--episodes", "100", "--seed", "5000", "--threads", "1"]
     model = root / cmd[2]
     capsys.readouterr()
     assert gpbf_main(["eval-agent", str(model), *cmd[3:], "--quiet"]) == 0

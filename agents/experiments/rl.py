@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.experiments.rl_schedule import CURVE_EPISODES, curve_freq
+from agents.experiments.rl_schedule import AGENT_THREADS, CURVE_EPISODES, curve_freq
 from agents.rl import AgentSpec, evaluate_agent, evaluate_pilot, train_agent
 from agents.rl.registry import TASK_ENVS
 from agents.rl.wrappers import VARIANTS
@@ -82,11 +82,11 @@ def _job(task: str, variant: str, seed: int, models: Path, out: Path, cfg: RLSet
     import torch
     from threadpoolctl import threadpool_limits
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(AGENT_THREADS)
     folder, done = _agent_folder(out, task, variant, seed), _result(out, task, variant, seed)
     if done.exists():
         return json.loads(done.read_text())
-    with threadpool_limits(1):
+    with threadpool_limits(AGENT_THREADS):
         spec = AgentSpec(cfg.algo, variant, task, "ekf", cfg.model, str(models), seed)
         path = train_agent(
             spec,

@@ -74,6 +74,8 @@ def _figures(out: Path, data: dict[str, Any]) -> None:
 def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
     """Per agent whose ``model.zip`` is in ``out/agents``: the command that evaluates it on
     the report's episodes and what it gave here (a row is the mean of its seeds' lines)."""
+    from agents.experiments.rl_schedule import eval_command
+
     agents = sorted((out / "agents").glob("*/model.zip"))
     if not agents:
         return []
@@ -83,7 +85,7 @@ def _published_lines(out: Path, meta: dict[str, Any]) -> list[str]:
     for model in agents:
         done = model.parent / "result.json"
         res = json.loads(done.read_text()) if done.exists() else {}
-        cmd = f"gpbf eval-agent {_shown(model)} --episodes {meta['episodes']} --seed {meta['eval_seed']}"
+        cmd = " ".join(eval_command(_shown(model), meta["episodes"], meta["eval_seed"]))
         figures = (f"{res['success_rate']:.2f} | {res['mean_return']:.1f}" if "mean_return" in res
                    else "- | -")  # fmt: skip
         lines.append(f"| {model.parent.name} | `{cmd}` | {figures} |")

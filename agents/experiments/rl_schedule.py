@@ -6,11 +6,22 @@ from __future__ import annotations
 
 from agents.rl import AgentSpec
 
-__all__ = ["CURVE_EPISODES", "CURVE_POINTS", "DEFAULT_BUDGET", "curve_freq", "train_command"]
+__all__ = [
+    "AGENT_THREADS",
+    "CURVE_EPISODES",
+    "CURVE_POINTS",
+    "DEFAULT_BUDGET",
+    "curve_freq",
+    "eval_command",
+    "train_command",
+]
 
 CURVE_POINTS = 10  # evaluations during training
 CURVE_EPISODES = 8  # episodes of each of them
 DEFAULT_BUDGET = 1_000_000  # the hyperparameter files' n_timesteps
+#: torch and BLAS threads each agent trains and is evaluated with (a belief agent's returns
+#: depend on the thread count in the last digits)
+AGENT_THREADS = 1
 
 
 def curve_freq(timesteps: int | None) -> int:
@@ -28,6 +39,16 @@ def train_command(spec: AgentSpec, timesteps: int | None, models: str, out: str)
         "gpbf", "train-agent", "--algo", spec.algo, "--obs", spec.variant, "--task", spec.task,
         *(beliefs if spec.variant.startswith("belief") else []), "--seed", str(spec.seed),
         *(["--timesteps", str(timesteps)] if timesteps else []),
-        "--eval-freq", str(curve_freq(timesteps)), "--curve-episodes", str(CURVE_EPISODES), "--threads", "1",
+        "--eval-freq", str(curve_freq(timesteps)), "--curve-episodes", str(CURVE_EPISODES),
+        "--threads", str(AGENT_THREADS),
         "--out", out,
+    ]  # fmt: skip
+
+
+def eval_command(model: str, episodes: int, seed: int) -> list[str]:
+    """The ``gpbf eval-agent`` command that flies the agent saved as ``model`` (as shown) on
+    ``episodes`` episodes from ``seed`` as the RL experiment evaluated it."""
+    return [
+        "gpbf", "eval-agent", model, "--episodes", str(episodes), "--seed", str(seed),
+        "--threads", str(AGENT_THREADS),
     ]  # fmt: skip
