@@ -284,6 +284,11 @@ def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path, monkeypatc
     assert [s["reason"] for s in res["survivors"]] == ["test added after this run (fails with it): t",
                                                        "equivalent: c is 1"]  # fmt: skip
     assert res["survivors_unexplained"] == 0 and "| `pkg/b.py` | 5 | 4 | 0 | 1 |" in combine.report(res)
+    assert res["runs"] == [{"folder": "older", "began": "2026-01-01 10:00:00 UTC"},
+                           {"folder": "newer", "began": "2026-01-02 10:00:00 UTC"}]  # fmt: skip
+    head = combine.report({**res, "combined_at": "abc1234567"}).splitlines()[2]
+    assert head.startswith("Provenance: 2 runs ") and "begun 2026-01-01 10:00:00 UTC to 2026-01-02" in head
+    assert head.endswith("combined at code abc1234567 by `python docs/results/mutation/combine.py`.")
 
 
 def test_a_mutant_only_a_module_fixture_reaches_is_run_against_every_test_of_the_fixture(

@@ -33,6 +33,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # summarise.py, beside this script
 import summarise  # noqa: E402
 
+from estimator_service.provenance import code_version  # noqa: E402
+
 COUNTS = ("killed", "timeout", "survived", "no_tests")
 TEST_ADDED = "test added after this run"
 #: what runs made before their record kept the timeout settings were measured with
@@ -87,6 +89,9 @@ def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: 
             for s in doc.get("survivors", [])
             if summarise._module_of(s["mutant"]) == module
         ]
+    used = sorted(
+        {(str(folder), doc["run"].get("began", "")) for folder, _, doc in chosen.values()}, key=lambda r: r[1]
+    )
     total = {k: sum(v[k] for v in out_modules.values()) for k in COUNTS}
     n = sum(v["total"] for v in out_modules.values())
     added = sum(s["reason"].startswith(TEST_ADDED) for s in survivors)
@@ -101,8 +106,24 @@ def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: 
         "modules_in_full": len(out_modules),
         "not_in_full": [m for m in modules if m not in chosen],
         "source_changed_since_run": [m for m, v in out_modules.items() if not v["source_current"]],
+        "runs": [{"folder": f, "began": b} for f, b in used],
         "modules": out_modules, "survivors": survivors,
     }  # fmt: skip
+
+
+def _provenance(res: dict) -> list[str]:
+    """The header line: the runs this page combines and the code that combined them."""
+    if not res["runs"]:
+        return []
+    began = [r["began"] for r in res["runs"]]
+    code = res.get("combined_at", "unknown")
+    return [
+        f"Provenance: {len(began)} runs of `mutate_sample.py --full ...` (`make mutate`'s driver), "
+        f"begun {began[0]} to {began[-1]} (each run's command, wall time and, where it was recorded, "
+        f"code version in its folder's README.md or report.md); combined at code {code} by "
+        "`python docs/results/mutation/combine.py`.",
+        "",
+    ]
 
 
 def report(res: dict) -> str:
@@ -111,6 +132,7 @@ def report(res: dict) -> str:
     head = [
         "# Mutation testing: the equations and the service's limits",
         "",
+        *_provenance(res),
         "One operator, constant, name or argument of the code changed at a time (a *mutant*, made by",
         "[mutmut](https://github.com/boxed/mutmut) 3); the unit tests that reach the changed function",
         "run against it. The configuration is `[tool.mutmut]` in `pyproject.toml`:",
@@ -163,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     modules = {m for _, doc in found for m in doc["modules"]}
     current = {m: summarise.source_hash(m) for m in modules if Path(m).is_file()}
     res = combine(found, reasons, args.folder, current)
+    res["combined_at"] = code_version()
     summarise.write_results(args.folder, res, report(res))
     keys = ("killed_ratio", "killed_ratio_without_timeouts", "killed_ratio_with_tests_added", "total",
             "modules_in_full", "survivors_unexplained")  # fmt: skip
