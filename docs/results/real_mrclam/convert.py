@@ -27,8 +27,11 @@ import io
 import json
 import math
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
+
+from estimator_service.files import atomic_write, atomic_write_text
 
 HERE = Path(__file__).resolve().parent
 DT = 0.1
@@ -122,6 +125,13 @@ def event_lines(raw: Path, robot: int, marks: dict) -> tuple[str, dict]:
     return out.getvalue(), summary
 
 
+def _gzip(raw: BinaryIO, text: str, name: str) -> None:
+    """``text`` gzipped into ``raw`` under the file name ``name`` (not the temporary file's;
+    mtime 0: the same data gives the same bytes)."""
+    with gzip.GzipFile(name, mode="wb", compresslevel=9, fileobj=raw, mtime=0) as fh:
+        fh.write(text.encode("utf-8"))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("raw", type=Path, help="folder of the raw MRCLAM .dat files")
@@ -131,12 +141,11 @@ def main() -> None:
     marks = landmarks(args.raw)
     marks = {s: xy for s, xy in marks.items() if s >= FIRST_LANDMARK}
     (args.out / "data").mkdir(parents=True, exist_ok=True)
-    (args.out / "mrclam.json").write_text(json.dumps(description(marks), indent=1) + "\n")
+    atomic_write_text(args.out / "mrclam.json", json.dumps(description(marks), indent=1) + "\n")
     for robot in args.robots:
         text, summary = event_lines(args.raw, robot, marks)
         path = args.out / "data" / f"robot{robot}.events.csv.gz"
-        with open(path, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", compresslevel=9, mtime=0) as fh:
-            fh.write(text.encode("utf-8"))  # mtime 0: the same data gives the same bytes
+        atomic_write(path, lambda raw, text=text, name=path.name: _gzip(raw, text, name))
         print(json.dumps(summary))
 
 
