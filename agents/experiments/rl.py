@@ -254,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
     p = Parser(prog="python -m agents.experiments.rl", description=__doc__.strip())
     p.add_argument(
         "--out", type=Path, default=Path("out/rl"),
-        help="output folder (the committed results: docs/results/rl, docs/results/sac_hover, sac_waypoint)",
+        help="output folder (the committed results: docs/results/rl, sac_hover, sac_waypoint)",
     )  # fmt: skip
     p.add_argument("--algo", choices=("ppo", "sac"), default="ppo", help="stable-baselines3 algorithm")
     p.add_argument(
