@@ -656,6 +656,15 @@ def test_an_exact_gp_file_keeps_no_factors_and_loads_them_again_bit_for_bit(mode
            "y_mean": arrays["y_mean"][:1], "y_std": arrays["y_std"][:1]}  # fmt: skip
     np.savez(tmp_path / "big.npz", **big)
     load_refused(tmp_path / "big.npz", "bytes of Cholesky factors")
+    for value in (-1000.0, 1000.0):  # length scales and variances of 0 or inf: no fit gives them
+        np.savez(tmp_path / "nan.npz", **{**arrays, "theta": np.full_like(arrays["theta"], value)})
+        load_refused(tmp_path / "nan.npz", "its kernel matrix cannot be factored")
+    hetero = dict(np.load(save_gp(models["hetero"], tmp_path / "hetero.npz"), allow_pickle=False))
+    np.savez(
+        tmp_path / "neg.npz",
+        **{**hetero, "main/noise_profile": -1e6 * np.ones_like(hetero["main/noise_profile"])},
+    )
+    load_refused(tmp_path / "neg.npz", "its kernel matrix cannot be factored: ")  # negative noise
 
 
 # -- bad input --------------------------------------------------------------------------------

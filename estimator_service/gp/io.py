@@ -168,7 +168,13 @@ def _exact(data: Arrays, prefix: str, where: str) -> ExactGP:
                 f"{where}: {p} outputs of {n} training points need {p * n * n * 8} bytes of "
                 f"Cholesky factors, more than {MAX_ARRAY_BYTES} (a damaged or hostile file)"
             )
-        chol = cholesky_factors(x, theta, prof)
+        with np.errstate(all="ignore"):  # hyperparameters no fit gives (a damaged file)
+            try:
+                chol = cholesky_factors(x, theta, prof)
+            except np.linalg.LinAlgError as exc:
+                raise ModelFileError(f"{where}: its kernel matrix cannot be factored: {exc}") from None
+        if not np.all(np.isfinite(chol)):
+            raise ModelFileError(f"{where}: its kernel matrix cannot be factored: theta gives NaN or inf")
     return ExactGP(xs, ys, theta, x, chol, alpha, prof)
 
 
