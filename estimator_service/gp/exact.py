@@ -20,7 +20,13 @@ from estimator_service.gp.base import (
 from estimator_service.gp.hyper import initial_thetas, learn_thetas, random_subset
 from estimator_service.gp.inverse import InverseBlocks
 from estimator_service.gp.kernel import CrossKernel, se_kernel, split_theta
-from estimator_service.gp.linalg import chol_solve, inverse_factor, robust_cholesky, tri_solve
+from estimator_service.gp.linalg import (
+    chol_solve,
+    inverse_factor,
+    robust_cholesky,
+    single_threaded_blas,
+    tri_solve,
+)
 from estimator_service.gp.parallel import over_outputs
 from estimator_service.reprs import short_repr
 
@@ -215,12 +221,10 @@ def cholesky_factors(x: FloatArray, theta: FloatArray, noise_profile: FloatArray
     caller runs with (a multi-threaded ``potrf`` rounds differently): a model file keeps
     ``alpha`` but not these factors, and a loaded GP predicts exactly as the fitted one.
     """
-    from threadpoolctl import threadpool_limits
-
     n, p_out = x.shape[0], theta.shape[0]
     chol_t = np.empty((p_out, n, n))
     prof = np.ones((p_out, n)) if noise_profile is None else noise_profile
-    with threadpool_limits(1):
+    with single_threaded_blas():
         for p in range(p_out):  # training or load time only
             ell, sf2, sn2 = split_theta(theta[p])
             k = se_kernel(x, x, ell, sf2)

@@ -163,19 +163,28 @@ def _exact(data: Arrays, prefix: str, where: str) -> ExactGP:
         chol = _get(data, f"{prefix}chol_t", 3, where)
         _expect(chol.shape == (p, n, n), where, f"chol_t {chol.shape}, expected {(p, n, n)}")
     else:
-        if p * n * n * 8 > MAX_ARRAY_BYTES:
-            raise ModelFileError(
-                f"{where}: {p} outputs of {n} training points need {p * n * n * 8} bytes of "
-                f"Cholesky factors, more than {MAX_ARRAY_BYTES} (a damaged or hostile file)"
-            )
-        with np.errstate(all="ignore"):  # hyperparameters no fit gives (a damaged file)
-            try:
-                chol = cholesky_factors(x, theta, prof)
-            except np.linalg.LinAlgError as exc:
-                raise ModelFileError(f"{where}: its kernel matrix cannot be factored: {exc}") from None
-        if not np.all(np.isfinite(chol)):
-            raise ModelFileError(f"{where}: its kernel matrix cannot be factored: theta gives NaN or inf")
+        chol = _factored(x, theta, prof, where)
     return ExactGP(xs, ys, theta, x, chol, alpha, prof)
+
+
+def _factored(x: NDArray, theta: NDArray, prof: NDArray | None, where: str) -> NDArray:
+    """An exact GP's factors (:func:`cholesky_factors`), refused when they would be larger
+    than any array a file may hold or when the hyperparameters are ones no fit gives."""
+    (p, _), n = theta.shape, x.shape[0]
+    need = p * n * n * np.dtype(np.float64).itemsize
+    if need > MAX_ARRAY_BYTES:
+        raise ModelFileError(
+            f"{where}: {p} outputs of {n} training points need {need} bytes of Cholesky factors, "
+            f"more than {MAX_ARRAY_BYTES} (a damaged or hostile file)"
+        )
+    with np.errstate(all="ignore"):
+        try:
+            chol = cholesky_factors(x, theta, prof)
+        except np.linalg.LinAlgError as exc:
+            raise ModelFileError(f"{where}: its kernel matrix cannot be factored: {exc}") from None
+    if not np.all(np.isfinite(chol)):
+        raise ModelFileError(f"{where}: its kernel matrix cannot be factored: theta gives NaN or inf")
+    return chol
 
 
 def _enhanced(data: Arrays, prefix: str, where: str, code: _Code) -> EnhancedGP:
