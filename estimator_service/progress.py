@@ -66,6 +66,7 @@ class ProgressBar:
             total = len(weights)
         self.desc, self.total, self.unit = desc, total, unit
         self._units_done = self._kept_units(done)  # with weights: the indices of the units done
+        self._by_index = bool(self._units_done)  # units counted by their index, not in order
         self.n = len(self._units_done)
         # with weights: the weight of the units done, and of those done before this job began
         self._weight_done = self._weight_kept = sum(self._unit_weight(i) for i in self._units_done)
@@ -146,6 +147,7 @@ class ProgressBar:
         if not 0 <= index < len(self._cum) - 1:
             raise ValueError(f"index {index} is not one of the {len(self._cum) - 1} weighted units")
         self._postfix = postfix or self._postfix
+        self._by_index = True
         if index in self._units_done:  # counted already (kept from before this job)
             return
         self._units_done.add(index)
@@ -162,12 +164,15 @@ class ProgressBar:
         return min(1.0, self.n / self.total) if self.total else 0.0
 
     def _next_share(self) -> float:
-        """The share of the job the next unit in order stands for (0 when none is left)."""
+        """The share of the job the running unit stands for (0 when none is left): the next
+        in order, or, where units are counted by index (kept units, units ending out of
+        order), the lowest index not done, the unit that began first among those left."""
         if not self.total or self.n >= self.total:
             return 0.0
         if self._cum is None:
             return 1.0 / self.total
-        return float(self._cum[self.n + 1] - self._cum[self.n]) / float(self._cum[-1])
+        i = min(set(range(self.total)) - self._units_done) if self._by_index else self.n
+        return self._unit_weight(i) / float(self._cum[-1])
 
     def _eta(self, now: float) -> float | None:
         """Seconds left: the share left at the pace of the share this job did (up to when it

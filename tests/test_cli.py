@@ -309,6 +309,28 @@ def test_a_resumed_jobs_kept_units_count_as_done_but_do_not_set_the_eta(monkeypa
         progress.ProgressBar("x", weights=[1.0, 1.0], done=[0, 2], enabled=False)
 
 
+def test_the_eta_caps_the_running_unit_by_the_unit_left_first_not_the_next_in_order(monkeypatch) -> None:
+    """Where units are counted by index (kept units, workers ending out of order), the time
+    the running unit may take off the ETA is that of the lowest unit left, the one begun
+    first: here unit 1 (weight 1) runs late and unit 2 (weight 4) is still to come, so the
+    ETA stays at unit 2's 40 s (it took unit 3's weight, a kept unit, and said 20 s)."""
+    import io
+
+    import estimator_service.progress as progress
+
+    clock = [0.0]
+    monkeypatch.setattr(progress, "monotonic", lambda: clock[0])
+    out = io.StringIO()
+    with progress.ProgressBar(
+        "run", unit="unit", stream=out, every_s=3600, weights=[1.0, 1.0, 4.0, 4.0, 4.0], done=[3, 4]
+    ) as bar:
+        clock[0] = 10.0
+        bar.advance(index=0)  # 1/14 of the weight in 10 s: 140 s the whole, 50 s the 5/14 left
+        clock[0] = 40.0  # unit 1, 10 s by that pace, has run 30 s
+        bar._line()
+    assert out.getvalue().splitlines()[0].endswith("ETA 40 s")
+
+
 def test_a_job_that_ends_early_says_why_and_never_claims_100_percent() -> None:
     import io
 
