@@ -291,6 +291,55 @@ def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path, monkeypatc
     assert head.endswith("combined at code abc1234567 by `python docs/results/mutation/combine.py`.")
 
 
+def test_a_module_whose_docstrings_or_comments_alone_changed_keeps_its_run(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A run stays the module's score when only docstrings or comments changed since (mutmut
+    mutates neither, so the mutants and their names are the same): the version the run saw is
+    found in the git history by its SHA-256 and its code compared with today's. A changed
+    statement, a single-quoted docstring (mutmut mutates it) or a ``pragma: no mutate`` comment
+    still counts as changed. It named three modules changed whose docstrings alone had."""
+    monkeypatch.syspath_prepend(str(SUMMARISE.parent))
+    import combine
+    import summarise
+
+    code = summarise.code_hash
+    base = b'"""Module."""\n\n\ndef f(x):\n    """Twice x."""\n    return 2 * x  # doubled\n'
+    assert code(base) == code(
+        base.replace(b"Twice x.", b"Two times x,\n    on two lines.").replace(b"# doubled", b"")
+    )
+    assert code(base) == code(base.replace(b'"""Module."""', b"'''Another module text.'''"))
+    assert code(base) != code(base.replace(b"2 * x", b"3 * x"))
+    assert code(base) != code(base.replace(b"# doubled", b"# pragma: no mutate"))
+    single = b'def f(x):\n    "Twice x."\n    return 2 * x\n'
+    assert code(single) != code(single.replace(b"Twice", b"Two times"))
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pkg").mkdir()
+    module = tmp_path / "pkg" / "a.py"
+    module.write_bytes(base)
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    subprocess.run(["git", "init", "-q"], check=True)
+    subprocess.run([*git, "add", "pkg"], check=True)
+    subprocess.run([*git, "commit", "-qm", "run"], check=True)
+    entry = {"total": 3, "killed": 3, "timeout": 0, "survived": 0, "no_tests": 0, "not_run": 0,
+             "killed_ratio": 1.0, "sha256": summarise.source_hash("pkg/a.py")}  # fmt: skip
+    (tmp_path / "runs" / "r").mkdir(parents=True)
+    doc = {"run": {"began": "2026-01-01 10:00:00 UTC", "full": ["pkg/a.py"]}, "modules": {"pkg/a.py": entry}}
+    (tmp_path / "runs" / "r" / "results.json").write_text(json.dumps(doc))
+
+    def changed(text: bytes) -> list[str]:
+        module.write_bytes(text)
+        now = {"pkg/a.py": summarise.source_hash("pkg/a.py")}
+        res = combine.combine(combine.runs(tmp_path / "runs"), {}, tmp_path / "runs", now,
+                              {"pkg/a.py": code(text)}, combine.code_in_history)  # fmt: skip
+        return res["source_changed_since_run"]
+
+    assert changed(base) == [] and changed(base.replace(b"Twice x.", b"Doubles x.")) == []
+    assert changed(base.replace(b"2 * x", b"x + x")) == ["pkg/a.py"]
+    assert combine.code_in_history("pkg/a.py", "0" * 64) is None
+
+
 def test_a_mutant_only_a_module_fixture_reaches_is_run_against_every_test_of_the_fixture(
     tmp_path: Path,
 ) -> None:

@@ -8,8 +8,11 @@ output), takes for each module the latest run that ran *all* its mutants as one 
 run's ``--full`` modules, and writes ``results.json`` and ``report.md`` here:
 
 - per module: that run's counts, its folder, when it began, its timeout settings and whether
-  the module's source is still the one it ran (``source_current``, by SHA-256); a module no
-  run took in full is listed in ``not_in_full`` with nothing counted;
+  the module's code is still the one it ran (``source_current``): the same bytes (SHA-256),
+  or the same code with other docstrings or comments (``summarise.code_hash``, the version
+  the run saw found in the repository's history by its SHA-256; its mutants are the same,
+  under the same names); a module no run took in full is listed in ``not_in_full`` with
+  nothing counted;
 - in total over the modules run in full: ``killed`` (timed-out mutants apart, ``timeout``),
   ``survived``, ``no_tests``, ``killed_ratio`` (timeouts counted as killed, mutmut's rule)
   and ``killed_ratio_without_timeouts`` (its lower bound: a timed-out mutant is not always a
@@ -25,8 +28,11 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
+import hashlib
 import json
+import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -70,9 +76,36 @@ def _ratio(killed: float, total: int) -> float | None:
     return round(killed / total, 4) if total else None
 
 
-def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: dict[str, str]) -> dict:
+def code_in_history(module: str, sha256: str) -> str | None:
+    """:func:`summarise.code_hash` of the version of ``module`` (a path from the repository
+    root) whose bytes have ``sha256``, looked up in the git history of the current directory;
+    None when no committed version has them (or git cannot tell)."""
+    try:
+        log = subprocess.run(["git", "log", "--format=%H", "--", module], capture_output=True, check=True,
+                             timeout=60).stdout.decode().split()  # fmt: skip
+        for commit in log:
+            shown = subprocess.run(["git", "show", f"{commit}:{module}"], capture_output=True, timeout=60)
+            if shown.returncode == 0 and hashlib.sha256(shown.stdout).hexdigest() == sha256:
+                return summarise.code_hash(shown.stdout)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return None
+
+
+def combine(
+    found: list[tuple[Path, dict]], reasons: dict, root: Path, current: dict[str, str],
+    code_now: dict[str, str] | None = None, code_at: Callable[[str, str], str | None] = lambda m, h: None,
+) -> dict:  # fmt: skip
     """The combined document (see the module docstring); ``current``: each module's SHA-256
-    today."""
+    today, ``code_now`` its :func:`summarise.code_hash`, ``code_at(module, sha256)`` the code
+    hash of the version with that SHA-256 (:func:`code_in_history`)."""
+    code_now = code_now or {}
+
+    def same(module: str, sha: str | None) -> bool:
+        if sha == current.get(module):
+            return True
+        return sha is not None and module in code_now and code_at(module, sha) == code_now[module]
+
     chosen = latest_full(found, root)
     modules = sorted({m for _, doc in found for m in doc["modules"]})
     out_modules, survivors = {}, []
@@ -82,7 +115,7 @@ def combine(found: list[tuple[Path, dict]], reasons: dict, root: Path, current: 
             "killed_ratio": entry["killed_ratio"],
             "run": str(folder), "began": doc["run"].get("began"),
             "timeouts": doc["run"].get("timeouts", UNRECORDED_TIMEOUTS),
-            "source_current": entry.get("sha256") == current.get(module),
+            "source_current": same(module, entry.get("sha256")),
         }  # fmt: skip
         survivors += [
             {**s, "run": str(folder), "reason": summarise._reason(reasons, s["mutant"], s["change"])}
@@ -157,7 +190,7 @@ def report(res: dict) -> str:
             if res["not_in_full"]
             else "none; `sampled/` holds an earlier sampled run over every module."
         ),
-        "Source changed since its run: "
+        "Code changed since its run (docstrings and comments aside): "
         + (", ".join(f"`{m}`" for m in res["source_changed_since_run"]) or "none")
         + ".",
         "",
@@ -184,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     reasons = json.loads(args.reasons.read_text()) if args.reasons.exists() else {}
     modules = {m for _, doc in found for m in doc["modules"]}
     current = {m: summarise.source_hash(m) for m in modules if Path(m).is_file()}
-    res = combine(found, reasons, args.folder, current)
+    code_now = {m: summarise.code_hash(Path(m).read_bytes()) for m in current}
+    res = combine(found, reasons, args.folder, current, code_now, code_in_history)
     res["combined_at"] = code_version()
     summarise.write_results(args.folder, res, report(res))
     keys = ("killed_ratio", "killed_ratio_without_timeouts", "killed_ratio_with_tests_added", "total",

@@ -33,6 +33,7 @@ Run from the repository root after ``mutmut run``: ``python docs/results/mutatio
 from __future__ import annotations
 
 import argparse
+import ast
 import hashlib
 import json
 import re
@@ -187,6 +188,28 @@ def _same_module(old: dict, path: str, mutants: int) -> bool:
 def source_hash(path: str) -> str:
     """SHA-256 of the module's source, as the run saw it (``path`` relative to the root)."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def code_hash(source: bytes) -> str:
+    """SHA-256 of what mutmut mutates in a module's ``source``: its syntax tree without the
+    triple-quoted docstrings (mutmut mutates no triple-quoted string) and without comments,
+    except the lines that say ``pragma: no mutate``. Two sources with one code hash give the
+    same mutants under the same names."""
+    text = source.decode()
+    tree = ast.parse(text)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list) and body and _triple_quoted_docstring(body[0], text):
+            node.body = body[1:] or [ast.Pass()]
+    pragmas = [ln.strip() for ln in text.splitlines() if "pragma: no mutate" in ln]
+    return hashlib.sha256("\0".join([ast.dump(tree), *pragmas]).encode()).hexdigest()
+
+
+def _triple_quoted_docstring(node: ast.stmt, text: str) -> bool:
+    if not (isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)):
+        return False
+    quoted = (ast.get_source_segment(text, node.value) or "").lstrip("rRuUbB")
+    return isinstance(node.value.value, str) and quoted.startswith(('"""', "'''"))
 
 
 def _module_of(mutant: str) -> str:
