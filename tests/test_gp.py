@@ -622,7 +622,7 @@ def test_hostile_gp_files_are_refused_by_name_at_no_cost(models, tmp_path: Path)
                   for k, v in hetero.items()}  # fmt: skip
     np.savez(bad, **{k: v for k, v in hetero.items() if not k.startswith("noise/")},
              **{k: v for k, v in one_output.items() if k.startswith("noise/")})  # fmt: skip
-    refused("main and noise GPs differ in outputs")
+    refused("inconsistent shapes: main and noise GPs differ in outputs")  # the text as written
 
 
 def test_an_exact_gp_file_keeps_no_factors_and_loads_them_again_bit_for_bit(models, tmp_path: Path) -> None:
@@ -647,6 +647,10 @@ def test_an_exact_gp_file_keeps_no_factors_and_loads_them_again_bit_for_bit(mode
         with threadpool_limits(threads):
             back = load_gp(path)
         np.testing.assert_array_equal(back.chol_t, gp.chol_t)
+    ints = ExactGP.from_theta(x[:20], y[:20], np.zeros((2, 4), dtype=int), one, one)  # integer theta
+    assert (
+        ints.theta.dtype == np.float64 and load_gp(save_gp(ints, tmp_path / "ints.npz")).theta.dtype == float
+    )
     np.savez(tmp_path / "older.npz", **arrays, chol_t=gp.chol_t)
     older = load_gp(tmp_path / "older.npz")
     assert isinstance(older, ExactGP)
@@ -665,6 +669,30 @@ def test_an_exact_gp_file_keeps_no_factors_and_loads_them_again_bit_for_bit(mode
         **{**hetero, "main/noise_profile": -1e6 * np.ones_like(hetero["main/noise_profile"])},
     )
     load_refused(tmp_path / "neg.npz", "its kernel matrix cannot be factored: ")  # negative noise
+
+
+def test_exact_gp_factors_of_the_array_limit_load_and_optional_arrays_are_checked_by_name(
+    models, tmp_path: Path, monkeypatch
+) -> None:
+    """Factors of exactly the array limit are allowed and one byte less of limit refuses them
+    (the limit is the largest array a file may hold); a noise profile or stored factors (the
+    older layout) holding NaN are refused with the file's name first, like every other array."""
+    import estimator_service.gp.io as gp_io
+
+    path = save_gp(models["exact"], tmp_path / "exact.npz")
+    exact = dict(np.load(path, allow_pickle=False))
+    p, n = exact["alpha"].shape
+    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", p * n * n * 8)
+    np.testing.assert_array_equal(load_gp(path).chol_t, models["exact"].chol_t)
+    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", p * n * n * 8 - 1)
+    load_refused(path, f"need {p * n * n * 8} bytes of Cholesky factors")
+    monkeypatch.undo()
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **exact, chol_t=np.full_like(models["exact"].chol_t, np.nan))
+    load_refused(bad, "array 'chol_t' holds NaN")
+    hetero = dict(np.load(save_gp(models["hetero"], tmp_path / "hetero.npz"), allow_pickle=False))
+    np.savez(bad, **{**hetero, "main/noise_profile": np.full_like(hetero["main/noise_profile"], np.nan)})
+    load_refused(bad, "array 'main/noise_profile' holds NaN")
 
 
 # -- bad input --------------------------------------------------------------------------------

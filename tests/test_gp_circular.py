@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -90,6 +91,9 @@ def test_round_trip_and_bad_files(model, tmp_path: Path) -> None:
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ModelFileError, match="angle_inputs"):
         load_gp(tmp_path / "bad.npz")
+    degrees = dataclasses.replace(model, period=360)  # an integer period (angles in degrees)
+    back = load_gp(save_gp(degrees, tmp_path / "degrees.npz"))  # saved as floats, as a file's arrays must be
+    assert back.period == 360 and np.array_equal(back.predict(q).mean, degrees.predict(q).mean)
 
 
 @pytest.mark.parametrize(
