@@ -203,6 +203,7 @@ def test_a_stopped_run_goes_on_and_other_code_starts_afresh(tmp_path: Path) -> N
     assert fresh["run"]["fingerprint"] != first["run"]["fingerprint"]
     _new_timeouts_run_timed_out_mutants_again(tmp_path, go, fresh, meta)
     _stopped_before_the_draw(tmp_path, go, fresh)
+    _stopped_while_mutmut_made_the_mutants(tmp_path, go, fresh)
 
 
 def _new_timeouts_run_timed_out_mutants_again(root: Path, go, done: dict, meta: Path) -> None:
@@ -237,6 +238,23 @@ def _stopped_before_the_draw(root: Path, go, done: dict) -> None:
     said, again = go()
     area = len(json.loads((root / "mutants" / "pkg" / "area.py.meta").read_text())["exit_code_by_key"])
     assert "a fresh run" not in said and f"{area} of {area} sampled mutants left" in said
+    assert {k: again[k] for k in ("killed", "survived", "not_run", "total")} == {
+        k: done[k] for k in ("killed", "survived", "not_run", "total")
+    }
+
+
+def _stopped_while_mutmut_made_the_mutants(root: Path, go, done: dict) -> None:
+    """A run stopped while mutmut was making the mutants, before those of ``--first``: the
+    first pass runs them (it was skipped, the draw made without them, and the run ended with
+    them unrun, 2026-12-06)."""
+    (root / "mutants" / "sample.json").unlink()
+    for made in ("twice.py.meta", "twice.py"):
+        (root / "mutants" / "pkg" / made).unlink()
+    meta = root / "mutants" / "pkg" / "area.py.meta"
+    doc = json.loads(meta.read_text())
+    meta.write_text(json.dumps({**doc, "exit_code_by_key": dict.fromkeys(doc["exit_code_by_key"])}))
+    said, again = go()
+    assert "a fresh run" not in said
     assert {k: again[k] for k in ("killed", "survived", "not_run", "total")} == {
         k: done[k] for k in ("killed", "survived", "not_run", "total")
     }

@@ -144,11 +144,20 @@ def _unrun(also: frozenset[str] = frozenset()) -> dict[str, list[str]]:
 
 def _first_left(pattern: str, also: frozenset[str] = frozenset()) -> list[str]:
     """The ``--first`` mutants still to run (or with a status in ``also``): all (the
-    pattern) before mutmut made them."""
+    pattern) before mutmut made them, also when a run stopped while mutmut was making them
+    left some modules' mutants and not yet the pattern's (the first pass was then skipped)."""
     unrun = _unrun(also)
-    if not unrun:
+    if not unrun or not _made(pattern):
         return [pattern]
     return [n for names in unrun.values() for n in names if fnmatch.fnmatch(n, pattern)]
+
+
+def _made(pattern: str) -> bool:
+    """Whether mutmut has made any mutant that ``pattern`` names, run or not."""
+    from mutmut.stats import status_by_exit_code
+
+    made = sample.by_status(frozenset(status_by_exit_code.values()))
+    return any(fnmatch.fnmatch(n, pattern) for names in made.values() for n in names)
 
 
 def _draw(settings: dict) -> dict[str, list[str]]:
