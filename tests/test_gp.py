@@ -1018,6 +1018,25 @@ def test_the_kernel_block_never_exceeds_the_signal_variance() -> None:
             np.testing.assert_allclose(np.diag(k), sf2[p], rtol=1e-10)
 
 
+def test_the_kernel_of_a_batch_of_outputs_is_each_outputs_kernel() -> None:
+    """``sq_dist`` and ``se_kernel`` on stacked inputs ``(P, M, d)``, ``(P, n, d)`` (one set of
+    length scales and signal variance per output, as documented) give each output's 2-D
+    block, which is SciPy's squared Euclidean distance; with ``M``, ``n`` and ``d`` all
+    different, so no axis can stand in for another."""
+    from scipy.spatial.distance import cdist
+
+    from estimator_service.gp.kernel import sq_dist
+
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(3, 4, 2)), rng.normal(size=(3, 6, 2))
+    ell, sf2 = rng.uniform(0.5, 2.0, (3, 2)), np.array([0.5, 1.0, 2.0])
+    d2, k = sq_dist(a, b), se_kernel(a, b, ell, sf2)
+    assert d2.shape == k.shape == (3, 4, 6)
+    for p in range(3):
+        np.testing.assert_allclose(d2[p], cdist(a[p], b[p], "sqeuclidean"), rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(k[p], se_kernel(a[p], b[p], ell[p], sf2[p]), rtol=1e-13)
+
+
 def test_the_inverse_factor_judges_the_lower_triangle_it_inverts() -> None:
     """``inverse_factor`` refuses a factor by the condition of its lower triangle: one with a
     unit diagonal and a large entry below it (condition about 1e12) is refused under 1e4 and
@@ -1193,6 +1212,48 @@ def test_the_vectorised_exp_is_within_one_ulp_of_numpys_over_the_whole_range() -
     for bad in (np.zeros(2), np.zeros((3, 1))):  # a cap per leading index, or one: nothing else
         with pytest.raises(ValueError, match="cap must be"):
             exp_capped(rows.copy(), bad)
+    with pytest.raises(ValueError, match="cap must be"):  # a single number has no leading index
+        exp_capped(np.array(0.5), np.zeros(1))
+    assert exp_capped(np.array(2.0), 1.0) == math.e  # a single number, capped
+    line = np.array([-1.0, 0.0, 1.0])  # a 1-D array: one cap per element
+    np.testing.assert_array_equal(
+        exp_capped(line.copy(), np.array([0.0, 0.5, 2.0])), np.exp([-1.0, 0.0, 1.0])
+    )
+
+
+def test_blocks_from_the_size_threshold_on_take_the_compiled_loop(monkeypatch) -> None:
+    """The compiled loop gets every C-contiguous float64 block of ``VECTORISE_MIN`` elements or
+    more, the threshold itself included, and no smaller one (the values alone cannot tell:
+    both paths are within 1 ulp)."""
+    from estimator_service.gp import fastexp
+
+    loop, sizes = fastexp._compiled(), []
+    assert loop is not None
+
+    def counted(rows: np.ndarray, caps: np.ndarray) -> None:
+        sizes.append(rows.size)
+        loop(rows, caps)
+
+    monkeypatch.setattr(fastexp, "_loaded", counted)
+    for size in (fastexp.VECTORISE_MIN - 1, fastexp.VECTORISE_MIN, fastexp.VECTORISE_MIN + 1):
+        a = np.linspace(-5.0, 1.0, size)
+        np.testing.assert_allclose(fastexp.exp_capped(a.copy(), 0.5), np.exp(np.minimum(a, 0.5)), rtol=3e-16)
+    assert sizes == [fastexp.VECTORISE_MIN, fastexp.VECTORISE_MIN + 1]  # an odd size is one row
+
+
+def test_a_failed_import_of_the_compiled_loop_leaves_numpys_exp(monkeypatch) -> None:
+    """In this process (the subprocess test below covers a real install without numba): where
+    the compiled loop cannot be imported, ``vectorised`` says so and large blocks are NumPy's
+    ``exp``, exactly."""
+    import sys
+
+    from estimator_service.gp import fastexp
+
+    monkeypatch.setitem(sys.modules, "estimator_service.gp.fastexp_kernel", None)  # import fails
+    monkeypatch.setattr(fastexp, "_loaded", fastexp._UNLOADED)
+    assert fastexp.vectorised() is False
+    a = np.random.default_rng(0).uniform(-50.0, 5.0, 2 * fastexp.VECTORISE_MIN)
+    np.testing.assert_array_equal(fastexp.exp_capped(a.copy(), 1.0), np.exp(np.minimum(a, 1.0)))
 
 
 def test_without_numba_the_exp_is_numpys() -> None:

@@ -309,6 +309,28 @@ def test_runs_of_a_few_modules_combine_into_one_score(tmp_path: Path, monkeypatc
     assert head.endswith("combined at code abc1234567 by `python docs/results/mutation/combine.py`.")
 
 
+def test_a_mutants_own_reason_holds_only_for_the_change_it_was_written_for(monkeypatch) -> None:
+    """mutmut numbers a function's mutants in order, so after a code change a name can stand
+    for another change: an entry written for one change does not explain another (a rule
+    still may, and the survivor names the change the entry was written for); an entry
+    without its change holds for any."""
+    monkeypatch.syspath_prepend(str(SUMMARISE.parent))
+    import summarise
+
+    mine, other = "- a = b * c | + a = b / c", "- a = b * c | + a = b + c"
+    reasons = {"mutants": {"m.x_f__mutmut_1": {"change": mine, "reason": "equivalent: c is 1"},
+                           "m.x_f__mutmut_2": "equivalent: any change"},
+               "changes": [[r"\+ .*'XX", "equivalent: a label nobody reads"]]}  # fmt: skip
+    assert summarise._reason(reasons, "m.x_f__mutmut_1", mine) == "equivalent: c is 1"
+    stale = summarise._reason(reasons, "m.x_f__mutmut_1", other)
+    assert not summarise.is_explained(stale) and mine in stale
+    assert summarise._reason(reasons, "m.x_f__mutmut_1", "- s = 'a' | + s = 'XXaXX'") == (
+        "equivalent: a label nobody reads"
+    )
+    assert summarise._reason(reasons, "m.x_f__mutmut_2", other) == "equivalent: any change"
+    assert summarise._reason(reasons, "m.x_g__mutmut_1", other) == summarise.UNEXPLAINED
+
+
 def test_a_module_whose_docstrings_or_comments_alone_changed_keeps_its_run(
     tmp_path: Path, monkeypatch
 ) -> None:

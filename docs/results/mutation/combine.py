@@ -17,7 +17,10 @@ run's ``--full`` modules, and writes ``results.json`` and ``report.md`` here:
   ``survived``, ``no_tests``, ``killed_ratio`` (timeouts counted as killed, mutmut's rule)
   and ``killed_ratio_without_timeouts`` (its lower bound: a timed-out mutant is not always a
   killed one, ``gp_models_base/README.md``);
-- every survivor of those runs with its reason as ``reasons.json`` gives it today, and
+- every survivor of those runs with its reason as ``reasons.json`` gives it today (a
+  mutant's own reason only where it was written for the same change: mutmut numbers a
+  function's mutants in order, so a name can stand for another change after a code edit),
+  and
   ``killed_ratio_with_tests_added``: survivors whose reason says a test was added after the
   run (each failing with its mutant applied by hand) counted as killed.
 
@@ -128,7 +131,7 @@ def combine(
     total = {k: sum(v[k] for v in out_modules.values()) for k in COUNTS}
     n = sum(v["total"] for v in out_modules.values())
     added = sum(s["reason"].startswith(TEST_ADDED) for s in survivors)
-    explained = sum(s["reason"] != "unexplained" for s in survivors)
+    explained = sum(summarise.is_explained(s["reason"]) for s in survivors)
     return {
         "combined": True, **total, "total": n,
         "killed_ratio": _ratio(total["killed"] + total["timeout"], n),

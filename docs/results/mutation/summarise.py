@@ -6,9 +6,10 @@ Reads mutmut's per-file results under ``mutants/`` and writes, beside this scrip
   ``killed_ratio`` (killed and timed-out mutants over all mutants run: a mutant no test
   reaches counts as surviving), the same per module, and every surviving mutant with its
   one-line change and its reason (``"equivalent: ..."`` or ``"test to add: ..."``) from
-  ``reasons.json`` (``--reasons``): ``{"mutants": {name: reason}, "changes": [[regex,
-  reason], ...]}``, a mutant's own entry first, else the first regular expression that
-  matches its change; a survivor without a reason is listed as ``unexplained``.
+  ``reasons.json`` (``--reasons``): ``{"mutants": {name: {"change": change, "reason":
+  reason}}, "changes": [[regex, reason], ...]}``, a mutant's own entry first where it was
+  written for the same change, else the first regular expression that matches its change; a
+  survivor without a reason is listed as ``unexplained``.
 - ``report.md``: the same for a reader.
 
 Each module's entry records the SHA-256 of its source (``sha256``), and the document the
@@ -46,6 +47,8 @@ from estimator_service.files import atomic_write_text, json_text
 HERE = Path(__file__).resolve().parent
 KILLED = {"killed", "timeout", "segfault", "caught by type check"}
 NOT_RUN = {"skipped", "not checked", "check was interrupted by user"}
+#: the reason of a survivor nothing explains (the start of it, where it says more)
+UNEXPLAINED = "unexplained"
 #: mutmut's working folder (relative to the repository root) and the record of a run in it
 #: (``mutate_sample.py``: the code's fingerprint, the draw's settings, when it began)
 MUTANTS = Path("mutants")
@@ -85,11 +88,29 @@ def _killed_ratio(named: dict[str, int], total: int) -> float | None:
 
 
 def _reason(reasons: dict, name: str, change: str) -> str:
-    """``name``'s reason (:func:`main`'s ``--reasons`` format), or ``"unexplained"``."""
+    """``name``'s reason (:func:`main`'s ``--reasons`` format), or one starting with
+    :data:`UNEXPLAINED`.
+
+    A mutant's own entry is a reason, or ``{"change": c, "reason": r}``: ``r`` holds for the
+    change ``c`` only. mutmut numbers the mutants of a function in order, so once its code
+    changes the same name can stand for another change; then the regular expressions decide,
+    and without one the survivor is unexplained, naming the change the entry was written for.
+    """
     own = reasons.get("mutants", {}) if "mutants" in reasons or "changes" in reasons else reasons
-    if name in own:
-        return own[name]
-    return next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), "unexplained")
+    entry = own.get(name)
+    if isinstance(entry, str) or (isinstance(entry, dict) and entry.get("change") == change):
+        return entry if isinstance(entry, str) else entry["reason"]
+    by_rule = next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), None)
+    if by_rule is not None:
+        return by_rule
+    if entry is None:
+        return UNEXPLAINED
+    return f"{UNEXPLAINED}: its entry in reasons.json was written for another change: `{entry.get('change')}`"
+
+
+def is_explained(reason: str) -> bool:
+    """Whether a survivor's :func:`_reason` explains it."""
+    return not reason.startswith(UNEXPLAINED)
 
 
 def estimate(status: dict[str, dict[str, str]], sample: dict, kept: dict[str, dict] | None = None) -> dict:
@@ -154,7 +175,7 @@ def summarise(reasons: dict, sample: dict | None = None, earlier: dict | None = 
         {**s, "reason": _reason(reasons, s["mutant"], s["change"])}
         for s in (earlier or {}).get("survivors", []) if _module_of(s["mutant"]) in kept
     ]  # fmt: skip
-    explained = sum(r["reason"] != "unexplained" for r in survivors)
+    explained = sum(is_explained(r["reason"]) for r in survivors)
     total = {k: sum(v[k] for v in modules.values()) for k in _named(Counter())}
     n_all = sum(v["total"] for v in modules.values())
     return {
