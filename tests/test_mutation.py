@@ -378,6 +378,11 @@ def test_a_module_whose_docstrings_or_comments_alone_changed_keeps_its_run(
     assert changed(base) == [] and changed(base.replace(b"Twice x.", b"Doubles x.")) == []
     assert changed(base.replace(b"2 * x", b"x + x")) == ["pkg/a.py"]
     assert combine.code_in_history("pkg/a.py", "0" * 64) is None
+    module.write_bytes(base.replace(b"2 * x", b"x + x"))  # two commits later, one deleting it:
+    subprocess.run([*git, "commit", "-qam", "edit"], check=True)  # the first version is found
+    subprocess.run([*git, "rm", "-q", "pkg/a.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "gone"], check=True)
+    assert combine.code_in_history("pkg/a.py", entry["sha256"]) == code(base)
 
 
 def test_a_mutant_only_a_module_fixture_reaches_is_run_against_every_test_of_the_fixture(

@@ -79,19 +79,34 @@ def _ratio(killed: float, total: int) -> float | None:
     return round(killed / total, 4) if total else None
 
 
+def _committed_versions(module: str) -> list[bytes]:
+    """Every committed version of ``module``, newest first: one ``git log`` and one ``git
+    cat-file --batch`` (its output: ``<id> blob <size>`` and the bytes, or ``<name> missing``)."""
+    log = subprocess.run(["git", "log", "--format=%H", "--", module], capture_output=True, check=True,
+                         timeout=60).stdout.decode().split()  # fmt: skip
+    names = "".join(f"{commit}:{module}\n" for commit in log).encode()
+    batch = subprocess.run(["git", "cat-file", "--batch"], input=names, capture_output=True, check=True,
+                           timeout=60).stdout  # fmt: skip
+    versions, pos = [], 0
+    while pos < len(batch):
+        end = batch.index(b"\n", pos)
+        head = batch[pos:end].split()
+        size = int(head[2]) if len(head) == 3 and head[1] == b"blob" else -1
+        versions += [batch[end + 1 : end + 1 + size]] if size >= 0 else []
+        pos = end + 1 + (size + 1 if size >= 0 else 0)
+    return versions
+
+
 def code_in_history(module: str, sha256: str) -> str | None:
     """:func:`summarise.code_hash` of the version of ``module`` (a path from the repository
     root) whose bytes have ``sha256``, looked up in the git history of the current directory;
     None when no committed version has them (or git cannot tell)."""
     try:
-        log = subprocess.run(["git", "log", "--format=%H", "--", module], capture_output=True, check=True,
-                             timeout=60).stdout.decode().split()  # fmt: skip
-        for commit in log:
-            shown = subprocess.run(["git", "show", f"{commit}:{module}"], capture_output=True, timeout=60)
-            if shown.returncode == 0 and hashlib.sha256(shown.stdout).hexdigest() == sha256:
-                return summarise.code_hash(shown.stdout)
-    except (OSError, subprocess.SubprocessError):
+        versions = _committed_versions(module)
+    except (OSError, ValueError, subprocess.SubprocessError):
         return None
+    same = (v for v in versions if hashlib.sha256(v).hexdigest() == sha256)
+    return next((summarise.code_hash(v) for v in same), None)
     return None
 
 
