@@ -107,7 +107,6 @@ def code_in_history(module: str, sha256: str) -> str | None:
         return None
     same = (v for v in versions if hashlib.sha256(v).hexdigest() == sha256)
     return next((summarise.code_hash(v) for v in same), None)
-    return None
 
 
 def combine(

@@ -98,8 +98,10 @@ def _reason(reasons: dict, name: str, change: str) -> str:
     """
     own = reasons.get("mutants", {}) if "mutants" in reasons or "changes" in reasons else reasons
     entry = own.get(name)
-    if isinstance(entry, str) or (isinstance(entry, dict) and entry.get("change") == change):
-        return entry if isinstance(entry, str) else entry["reason"]
+    if isinstance(entry, str):
+        return entry
+    if isinstance(entry, dict) and entry.get("change") == change:
+        return entry["reason"]
     by_rule = next((why for rx, why in reasons.get("changes", []) if re.search(rx, change)), None)
     if by_rule is not None:
         return by_rule
