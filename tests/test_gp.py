@@ -682,10 +682,11 @@ def test_exact_gp_factors_of_the_array_limit_load_and_optional_arrays_are_checke
     path = save_gp(models["exact"], tmp_path / "exact.npz")
     exact = dict(np.load(path, allow_pickle=False))
     p, n = exact["alpha"].shape
-    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", p * n * n * 8)
+    factor_bytes = p * n * n * 8
+    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", factor_bytes)
     np.testing.assert_array_equal(load_gp(path).chol_t, models["exact"].chol_t)
-    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", p * n * n * 8 - 1)
-    load_refused(path, f"need {p * n * n * 8} bytes of Cholesky factors")
+    monkeypatch.setattr(gp_io, "MAX_ARRAY_BYTES", factor_bytes - 1)
+    load_refused(path, f"need {factor_bytes} bytes of Cholesky factors")
     monkeypatch.undo()
     bad = tmp_path / "bad.npz"
     np.savez(bad, **exact, chol_t=np.full_like(models["exact"].chol_t, np.nan))
